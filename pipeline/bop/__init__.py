@@ -1,1 +1,71 @@
-"""bop package."""
+"""BOP format layer: datasets, models (PLY), detections (RLE), results CSV, JSON layout."""
+
+from .dataset import (
+    DEFAULT_TARGETS,
+    BopDataset,
+    CameraInfo,
+    GtInfo,
+    GtPose,
+    ModelInfo,
+    Target,
+    save_depth_png,
+    save_mask_png,
+    save_rgb,
+    write_camera,
+    write_models_info,
+    write_scene_camera,
+    write_scene_gt,
+    write_scene_gt_info,
+    write_targets,
+)
+from .detections import (
+    Detection,
+    detection_from_mask,
+    load_detections,
+    rle_counts_from_string,
+    rle_counts_to_string,
+    rle_decode,
+    rle_encode,
+    save_detections,
+)
+from .errors import BopFormatError
+from .jsonio import load_json, save_bop_json
+from .ply import PlyData, load_mesh, read_ply, write_ply
+from .results import read_estimates_json, read_results_csv, write_results_csv
+
+__all__ = [
+    "DEFAULT_TARGETS",
+    "BopDataset",
+    "BopFormatError",
+    "CameraInfo",
+    "Detection",
+    "GtInfo",
+    "GtPose",
+    "ModelInfo",
+    "PlyData",
+    "Target",
+    "detection_from_mask",
+    "load_detections",
+    "load_json",
+    "load_mesh",
+    "read_estimates_json",
+    "read_ply",
+    "read_results_csv",
+    "rle_counts_from_string",
+    "rle_counts_to_string",
+    "rle_decode",
+    "rle_encode",
+    "save_bop_json",
+    "save_depth_png",
+    "save_detections",
+    "save_mask_png",
+    "save_rgb",
+    "write_camera",
+    "write_models_info",
+    "write_ply",
+    "write_results_csv",
+    "write_scene_camera",
+    "write_scene_gt",
+    "write_scene_gt_info",
+    "write_targets",
+]

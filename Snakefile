@@ -1,0 +1,85 @@
+# FreeZe pipeline. Main job: `snakemake --cores 2 bop_all`.
+# Output paths are computed from cache keys at DAG time (pipeline/plan.py), so a change
+# of parameters, encoders or stage code versions builds new artifacts beside the old
+# ones and reruns only the stages that depend on the change.
+import os
+import sys
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+from pipeline.config import load_run
+from pipeline.plan import RunPlan, obj_item, scene_item
+
+RUN = load_run(config)          # manifests/runs/default.yaml + --config overrides
+PLAN = RunPlan(RUN)
+DATASETS = []
+for _ds in RUN.datasets:
+    _ok, _why = PLAN.available(_ds)
+    if _ok:
+        DATASETS.append(_ds)
+    else:
+        print(_why, file=sys.stderr)
+RUN_JSON = PLAN.to_json()
+CACHE = str(PLAN.cache)
+RESULTS = os.path.join(os.path.dirname(CACHE), "results")
+LOGS = os.path.join(os.path.dirname(CACHE), "logs")
+PY = sys.executable
+
+
+def stage_shell(stage):
+    """Shell command of a stage job: the same entry point as `freeze stage`."""
+    return (f"{PY} -m pipeline.cli stage {stage} --dataset {{wildcards.ds}} --item {{params.item}} "
+            f"--expect-sig {{wildcards.sig}} --run-json {{params.run:q}} > {{log}} 2>&1")
+
+
+def stage_plan(wc, stage):
+    sp = PLAN[wc.ds][stage]
+    if wc.sig != sp.signature:
+        raise ValueError(f"{stage} of {wc.ds}: requested signature {wc.sig}, but the current plan's is {sp.signature}")
+    return sp
+
+
+def dataset_input(wc):
+    """The synthetic dataset's manifest, for synthetic datasets; nothing for BOP ones."""
+    plan = PLAN[wc.ds]
+    return [str(plan["synth"].manifest("dataset"))] if "synth" in plan.stages else []
+
+
+wildcard_constraints:
+    ds="[a-z0-9]+",
+    sig="[A-Za-z0-9.+-]+",
+    obj="[0-9]{6}",
+    scene="[0-9]{6}",
+
+
+include: "stages/synth.smk"
+include: "stages/render_templates.smk"
+include: "stages/model_features.smk"
+include: "stages/segment_prior.smk"
+include: "stages/scene_features.smk"
+include: "stages/register.smk"
+include: "stages/refine.smk"
+include: "stages/score.smk"
+
+
+rule bop_all:
+    """Every stage on every dataset of the run; prints and writes the AR table."""
+    input:
+        [str(PLAN[ds]["score"].manifest("all")) for ds in DATASETS],
+    output:
+        os.path.join(RESULTS, "ar_table.md"),
+    params:
+        datasets=",".join(DATASETS),
+        run=RUN_JSON,
+    log:
+        os.path.join(LOGS, "bop_all.log"),
+    shell:
+        f"{PY} -m pipeline.cli table --run-json {{params.run:q}} --out {{output}} > {{log}} 2>&1"
+
+
+onsuccess:
+    _table = os.path.join(RESULTS, "ar_table.md")
+    if os.path.exists(_table):
+        print("\nBOP19 average recall (" + _table + "):\n" + open(_table).read())

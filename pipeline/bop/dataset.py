@@ -1,0 +1,642 @@
+"""Reader and writers for a BOP dataset directory.
+
+Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md)::
+
+    <root>/camera[_<split_type>].json
+    <root>/models[_eval]/models_info.json, obj_<obj_id:06d>.ply
+    <root>/test_targets_bop19.json
+    <root>/<split>[_<split_type>]/<scene_id:06d>/
+        scene_camera.json  scene_gt.json  scene_gt_info.json
+        rgb|gray/<im_id:06d>.png|jpg|tif  depth/<im_id:06d>.png|tif
+        mask/<im_id:06d>_<gt_id:06d>.png  mask_visib/...
+
+Poses are model-to-camera, R (3, 3) float64 and t (3,) float64 in mm; depth images are
+raw integers times ``depth_scale`` = mm. JSON files are parsed once per instance.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import cv2
+import numpy as np
+import trimesh
+
+from .errors import BopFormatError
+from .jsonio import load_json, save_bop_json
+from .ply import load_mesh
+
+_RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+_DEPTH_EXTS = (".png", ".tif", ".tiff")
+DEFAULT_TARGETS = "test_targets_bop19.json"
+
+
+# ---------------------------------------------------------------------------- records
+
+
+@dataclass
+class ModelInfo:
+    """Entry of models_info.json. Lengths in mm.
+
+    min_xyz, size_xyz: (3,) float64 bounding box corner and extent.
+    symmetries_discrete: list of (4, 4) float64 transforms (translation in mm).
+    symmetries_continuous: list of {"axis": (3,) float64, "offset": (3,) float64 mm}.
+    """
+
+    diameter: float
+    min_xyz: np.ndarray
+    size_xyz: np.ndarray
+    symmetries_discrete: list[np.ndarray] = field(default_factory=list)
+    symmetries_continuous: list[dict[str, np.ndarray]] = field(default_factory=list)
+
+    @property
+    def is_symmetric(self) -> bool:
+        return bool(self.symmetries_discrete or self.symmetries_continuous)
+
+
+@dataclass
+class CameraInfo:
+    """Per-image camera of scene_camera.json.
+
+    K: (3, 3) float64 OpenCV intrinsics (px). depth_scale: raw depth unit in mm.
+    width, height: image size in px. R_w2c (3, 3) / t_w2c (3,) mm: world-to-camera
+    pose when the dataset gives it, else None.
+    """
+
+    K: np.ndarray
+    depth_scale: float
+    width: int
+    height: int
+    R_w2c: np.ndarray | None = None
+    t_w2c: np.ndarray | None = None
+
+
+@dataclass
+class GtPose:
+    """One annotated instance: R (3, 3) float64, t (3,) float64 mm, model-to-camera."""
+
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+
+
+@dataclass
+class GtInfo:
+    """Visibility statistics of one instance (scene_gt_info.json); boxes are (x, y, w, h) px."""
+
+    bbox_obj: tuple[int, int, int, int]
+    bbox_visib: tuple[int, int, int, int]
+    px_count_all: int
+    px_count_valid: int
+    px_count_visib: int
+    visib_fract: float
+
+
+@dataclass(frozen=True)
+class Target:
+    """One evaluation target: ``inst_count`` instances of ``obj_id`` in image (scene_id, im_id)."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    inst_count: int
+
+
+# ---------------------------------------------------------------------------- field parsing
+
+
+def _get(path: Path, d: Any, key: str, entry: Any = None) -> Any:
+    if not isinstance(d, dict):
+        where = f"entry {entry}: " if entry is not None else ""
+        raise BopFormatError(f"{path}: {where}expected an object, got {type(d).__name__}")
+    if key not in d:
+        where = f"entry {entry}, " if entry is not None else ""
+        raise BopFormatError(f"{path}: {where}field '{key}' missing")
+    return d[key]
+
+
+def _floats(path: Path, value: Any, n: int, key: str, entry: Any = None) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.size != n or not np.all(np.isfinite(arr)):
+        where = f"entry {entry}, " if entry is not None else ""
+        raise BopFormatError(f"{path}: {where}field '{key}': expected {n} finite numbers, got {value!r}")
+    return arr
+
+
+def _int(path: Path, value: Any, key: str, entry: Any = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (isinstance(value, float) and not value.is_integer()):
+        where = f"entry {entry}, " if entry is not None else ""
+        raise BopFormatError(f"{path}: {where}field '{key}': expected an integer, got {value!r}")
+    return int(value)
+
+
+def _int_key(path: Path, key: str) -> int:
+    try:
+        return int(key)
+    except ValueError:
+        raise BopFormatError(f"{path}: key '{key}' is not an integer id") from None
+
+
+def parse_models_info(path: Path, content: Any) -> dict[int, ModelInfo]:
+    """ModelInfo per obj_id from the parsed JSON of a models_info.json file."""
+    if not isinstance(content, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by obj_id")
+    out: dict[int, ModelInfo] = {}
+    for key, d in content.items():
+        obj_id = _int_key(path, key)
+        e = f"obj {obj_id}"
+        diameter = float(_floats(path, _get(path, d, "diameter", e), 1, "diameter", e)[0])
+        mins = np.array([float(_floats(path, _get(path, d, f"min_{a}", e), 1, f"min_{a}", e)[0]) for a in "xyz"])
+        sizes = np.array([float(_floats(path, _get(path, d, f"size_{a}", e), 1, f"size_{a}", e)[0]) for a in "xyz"])
+        disc = [
+            _floats(path, s, 16, f"symmetries_discrete[{i}]", e).reshape(4, 4)
+            for i, s in enumerate(d.get("symmetries_discrete", []))
+        ]
+        cont = []
+        for i, s in enumerate(d.get("symmetries_continuous", [])):
+            k = f"symmetries_continuous[{i}]"
+            cont.append(
+                {
+                    "axis": _floats(path, _get(path, s, "axis", f"{e} {k}"), 3, f"{k}.axis", e),
+                    "offset": _floats(path, s.get("offset", [0, 0, 0]), 3, f"{k}.offset", e),
+                }
+            )
+        out[obj_id] = ModelInfo(diameter, mins, sizes, disc, cont)
+    return dict(sorted(out.items()))
+
+
+# ---------------------------------------------------------------------------- reader
+
+
+class BopDataset:
+    """Read-only view of one split of a BOP dataset.
+
+    root: dataset folder (holding camera.json, models/, <split>/). split: "test",
+    "val", "train_pbr"... split_type: e.g. "primesense" for T-LESS, which selects the
+    folder ``<split>_<split_type>`` and ``camera_<split_type>.json``. models_dir:
+    the model folder used by ``model_path(eval=False)`` ("models", or T-LESS's
+    "models_cad"/"models_reconst").
+
+    Datasets that ship only ``models_eval`` (e.g. the HOPE validation sample) fall
+    back to it, with a warning, since those meshes carry no colour.
+    """
+
+    def __init__(self, root: Path | str, split: str = "test", split_type: str | None = None, models_dir: str = "models"):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise BopFormatError(f"{self.root}: dataset root is not a directory")
+        self.split = split
+        self.split_type = split_type
+        self.models_dir = models_dir
+        self.split_dir = self.root / (f"{split}_{split_type}" if split_type else split)
+        self._json_cache: dict[Path, Any] = {}
+        self._models_info: dict[int, ModelInfo] | None = None
+        self._scene_camera: dict[int, dict[int, CameraInfo]] = {}
+        self._scene_gt: dict[int, dict[int, list[GtPose]]] = {}
+        self._scene_gt_info: dict[int, dict[int, list[GtInfo]]] = {}
+        self._warned_eval_fallback = False
+
+    def __repr__(self) -> str:
+        return f"BopDataset(root={str(self.root)!r}, split={self.split!r}, split_type={self.split_type!r})"
+
+    @property
+    def name(self) -> str:
+        """Dataset name as BOP spells it (the root folder name, e.g. "lmo", "icbin")."""
+        return self.root.name
+
+    def _json(self, path: Path) -> Any:
+        if path not in self._json_cache:
+            self._json_cache[path] = load_json(path)
+        return self._json_cache[path]
+
+    # -- camera and models
+
+    def camera_path(self) -> Path:
+        if self.split_type:
+            typed = self.root / f"camera_{self.split_type}.json"
+            if typed.is_file():
+                return typed
+        return self.root / "camera.json"
+
+    def camera(self) -> dict:
+        """Contents of camera.json plus ``K`` (3, 3) float64 built from fx, fy, cx, cy."""
+        path = self.camera_path()
+        cam = dict(self._json(path))
+        fx, fy, cx, cy = (float(_floats(path, _get(path, cam, k), 1, k)[0]) for k in ("fx", "fy", "cx", "cy"))
+        cam["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return cam
+
+    def _model_dir(self, eval: bool, warn: bool = True) -> Path:
+        if eval:
+            return self.root / "models_eval"
+        d = self.root / self.models_dir
+        if not d.is_dir() and (self.root / "models_eval").is_dir():
+            if warn and not self._warned_eval_fallback:
+                warnings.warn(
+                    f"{self.root}: no '{self.models_dir}/' folder, using 'models_eval/' (geometry only, no colour)",
+                    stacklevel=3,
+                )
+                self._warned_eval_fallback = True
+            return self.root / "models_eval"
+        return d
+
+    def models_info_path(self) -> Path:
+        for d in (self._model_dir(False, warn=False), self.root / "models_eval"):
+            if (d / "models_info.json").is_file():
+                return d / "models_info.json"
+        return self._model_dir(False, warn=False) / "models_info.json"
+
+    def models_info(self) -> dict[int, ModelInfo]:
+        """ModelInfo per obj_id (from models/models_info.json, else models_eval/)."""
+        if self._models_info is None:
+            path = self.models_info_path()
+            self._models_info = parse_models_info(path, self._json(path))
+        return self._models_info
+
+    def obj_ids(self) -> list[int]:
+        return list(self.models_info().keys())
+
+    def model_path(self, obj_id: int, eval: bool = False) -> Path:
+        """Path of ``obj_<obj_id:06d>.ply`` in models/ (or models_eval/ when ``eval``)."""
+        return self._model_dir(eval) / f"obj_{int(obj_id):06d}.ply"
+
+    def load_model(self, obj_id: int, eval: bool = False) -> trimesh.Trimesh:
+        """The model as a trimesh in mm, coloured for rendering (see ``ply.load_mesh``)."""
+        path = self.model_path(obj_id, eval)
+        if not path.is_file():
+            raise BopFormatError(f"{path}: model of obj_id {obj_id} not found")
+        return load_mesh(path)
+
+    # -- scenes
+
+    def scene_dir(self, scene_id: int) -> Path:
+        return self.split_dir / f"{int(scene_id):06d}"
+
+    def scene_ids(self) -> list[int]:
+        """Sorted ids of the scene folders (6-digit names) of the split."""
+        if not self.split_dir.is_dir():
+            raise BopFormatError(f"{self.split_dir}: split folder not found")
+        return sorted(int(p.name) for p in self.split_dir.iterdir() if p.is_dir() and p.name.isdigit())
+
+    def image_ids(self, scene_id: int) -> list[int]:
+        """Sorted image ids of a scene (the keys of its scene_camera.json)."""
+        return list(self.scene_camera(scene_id).keys())
+
+    def _image_size(self, scene_id: int, cam: dict) -> tuple[int, int]:
+        if "width" in cam and "height" in cam:
+            return int(cam["width"]), int(cam["height"])
+        # No camera.json (e.g. a single-scene sample): take the size of one image.
+        from PIL import Image
+
+        for sub in ("rgb", "gray", "depth"):
+            d = self.scene_dir(scene_id) / sub
+            if d.is_dir():
+                for p in sorted(d.iterdir()):
+                    if p.suffix.lower() in _RGB_EXTS:
+                        with Image.open(p) as im:
+                            return im.size
+        raise BopFormatError(
+            f"{self.camera_path()}: fields 'width'/'height' missing and no image in {self.scene_dir(scene_id)} to take them from"
+        )
+
+    def scene_camera(self, scene_id: int) -> dict[int, CameraInfo]:
+        """CameraInfo per im_id, sorted by im_id."""
+        if scene_id not in self._scene_camera:
+            path = self.scene_dir(scene_id) / "scene_camera.json"
+            content = self._json(path)
+            cam = self._json(self.camera_path()) if self.camera_path().is_file() else {}
+            width, height = self._image_size(scene_id, cam)
+            out = {}
+            for key, d in content.items():
+                im_id = _int_key(path, key)
+                e = f"'{key}'"
+                K = _floats(path, _get(path, d, "cam_K", e), 9, "cam_K", e).reshape(3, 3)
+                if "depth_scale" in d:
+                    scale = float(_floats(path, d["depth_scale"], 1, "depth_scale", e)[0])
+                elif "depth_scale" in cam:
+                    scale = float(cam["depth_scale"])
+                else:
+                    raise BopFormatError(f"{path}: entry {e}, field 'depth_scale' missing (and not in camera.json)")
+                R_w2c = t_w2c = None
+                if "cam_R_w2c" in d and "cam_t_w2c" in d:
+                    R_w2c = _floats(path, d["cam_R_w2c"], 9, "cam_R_w2c", e).reshape(3, 3)
+                    t_w2c = _floats(path, d["cam_t_w2c"], 3, "cam_t_w2c", e)
+                out[im_id] = CameraInfo(K, scale, width, height, R_w2c, t_w2c)
+            self._scene_camera[scene_id] = dict(sorted(out.items()))
+        return self._scene_camera[scene_id]
+
+    def scene_gt(self, scene_id: int) -> dict[int, list[GtPose]]:
+        """Ground-truth instances per im_id (list index = gt_id, as in mask file names)."""
+        if scene_id not in self._scene_gt:
+            path = self.scene_dir(scene_id) / "scene_gt.json"
+            out = {}
+            for key, items in self._json(path).items():
+                im_id = _int_key(path, key)
+                poses = []
+                for gt_id, d in enumerate(items):
+                    e = f"'{key}'[{gt_id}]"
+                    poses.append(
+                        GtPose(
+                            obj_id=_int(path, _get(path, d, "obj_id", e), "obj_id", e),
+                            R=_floats(path, _get(path, d, "cam_R_m2c", e), 9, "cam_R_m2c", e).reshape(3, 3),
+                            t=_floats(path, _get(path, d, "cam_t_m2c", e), 3, "cam_t_m2c", e),
+                        )
+                    )
+                out[im_id] = poses
+            self._scene_gt[scene_id] = dict(sorted(out.items()))
+        return self._scene_gt[scene_id]
+
+    def scene_gt_info(self, scene_id: int) -> dict[int, list[GtInfo]]:
+        """Visibility statistics per im_id, aligned with ``scene_gt``."""
+        if scene_id not in self._scene_gt_info:
+            path = self.scene_dir(scene_id) / "scene_gt_info.json"
+            out = {}
+            for key, items in self._json(path).items():
+                im_id = _int_key(path, key)
+                infos = []
+                for gt_id, d in enumerate(items):
+                    e = f"'{key}'[{gt_id}]"
+                    boxes = {
+                        k: tuple(int(v) for v in _floats(path, _get(path, d, k, e), 4, k, e))
+                        for k in ("bbox_obj", "bbox_visib")
+                    }
+                    counts = {
+                        k: _int(path, _get(path, d, k, e), k, e)
+                        for k in ("px_count_all", "px_count_valid", "px_count_visib")
+                    }
+                    fract = float(_floats(path, _get(path, d, "visib_fract", e), 1, "visib_fract", e)[0])
+                    infos.append(GtInfo(boxes["bbox_obj"], boxes["bbox_visib"], **counts, visib_fract=fract))
+                out[im_id] = infos
+            self._scene_gt_info[scene_id] = dict(sorted(out.items()))
+        return self._scene_gt_info[scene_id]
+
+    # -- images
+
+    def _find_image(self, scene_id: int, im_id: int, subdirs: Iterable[str], exts: Iterable[str]) -> Path | None:
+        for sub in subdirs:
+            for ext in exts:
+                p = self.scene_dir(scene_id) / sub / f"{int(im_id):06d}{ext}"
+                if p.is_file():
+                    return p
+        return None
+
+    def rgb_path(self, scene_id: int, im_id: int) -> Path:
+        p = self._find_image(scene_id, im_id, ("rgb", "gray"), _RGB_EXTS)
+        if p is None:
+            raise BopFormatError(f"{self.scene_dir(scene_id)}: no rgb/ or gray/ image for im_id {im_id}")
+        return p
+
+    def load_rgb(self, scene_id: int, im_id: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB; grey images are replicated to 3 channels, alpha is dropped."""
+        path = self.rgb_path(scene_id, im_id)
+        im = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if im is None:
+            raise BopFormatError(f"{path}: cannot decode image")
+        if im.dtype == np.uint16:  # 16-bit grey (ITODD-like): keep the top 8 bits
+            im = (im >> 8).astype(np.uint8)
+        if im.dtype != np.uint8:
+            raise BopFormatError(f"{path}: unsupported image dtype {im.dtype}")
+        if im.ndim == 2:
+            return np.repeat(im[:, :, None], 3, axis=2)
+        if im.shape[2] == 4:
+            return cv2.cvtColor(im, cv2.COLOR_BGRA2RGB)
+        return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
+
+    def depth_path(self, scene_id: int, im_id: int) -> Path | None:
+        return self._find_image(scene_id, im_id, ("depth",), _DEPTH_EXTS)
+
+    def has_depth(self, scene_id: int, im_id: int) -> bool:
+        return self.depth_path(scene_id, im_id) is not None
+
+    def load_depth(self, scene_id: int, im_id: int) -> np.ndarray:
+        """(H, W) float32 depth in mm (raw * depth_scale), 0 where invalid."""
+        path = self.depth_path(scene_id, im_id)
+        if path is None:
+            raise BopFormatError(f"{self.scene_dir(scene_id)}: no depth/ image for im_id {im_id} (dataset without depth?)")
+        raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+        if raw is None:
+            raise BopFormatError(f"{path}: cannot decode depth image")
+        cams = self.scene_camera(scene_id)
+        if im_id not in cams:
+            raise BopFormatError(f"{self.scene_dir(scene_id) / 'scene_camera.json'}: no entry for im_id {im_id}")
+        return (raw.astype(np.float64) * cams[im_id].depth_scale).astype(np.float32)
+
+    def mask_path(self, scene_id: int, im_id: int, gt_id: int, visib: bool = True) -> Path:
+        sub = "mask_visib" if visib else "mask"
+        return self.scene_dir(scene_id) / sub / f"{int(im_id):06d}_{int(gt_id):06d}.png"
+
+    def load_mask(self, scene_id: int, im_id: int, gt_id: int, visib: bool = True) -> np.ndarray:
+        """(H, W) bool mask of GT instance ``gt_id`` (visible part when ``visib``)."""
+        path = self.mask_path(scene_id, im_id, gt_id, visib)
+        im = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if im is None:
+            raise BopFormatError(f"{path}: mask not found or not decodable")
+        return im > 0
+
+    # -- targets and identity
+
+    def targets_path(self, path: Path | str | None = None) -> Path:
+        return Path(path) if path is not None else self.root / DEFAULT_TARGETS
+
+    def targets(self, path: Path | str | None = None) -> list[Target]:
+        """Targets of a BOP19-style file (default ``<root>/test_targets_bop19.json``).
+
+        BOP24 files list images only; use ``image_targets`` for them.
+        """
+        path = self.targets_path(path)
+        content = self._json(path)
+        if not isinstance(content, list):
+            raise BopFormatError(f"{path}: expected a JSON list of targets")
+        out = []
+        for i, d in enumerate(content):
+            if isinstance(d, dict) and "obj_id" not in d and "scene_id" in d and "im_id" in d:
+                raise BopFormatError(
+                    f"{path}: entry {i}, field 'obj_id' missing: this looks like a BOP24 (image-level) targets file; "
+                    "use image_targets() or a test_targets_bop19.json"
+                )
+            out.append(
+                Target(
+                    scene_id=_int(path, _get(path, d, "scene_id", i), "scene_id", i),
+                    im_id=_int(path, _get(path, d, "im_id", i), "im_id", i),
+                    obj_id=_int(path, _get(path, d, "obj_id", i), "obj_id", i),
+                    inst_count=_int(path, _get(path, d, "inst_count", i), "inst_count", i),
+                )
+            )
+        return out
+
+    def image_targets(self, path: Path | str | None = None) -> list[tuple[int, int]]:
+        """Sorted unique (scene_id, im_id) of a BOP19 or BOP24 targets file."""
+        path = self.targets_path(path)
+        content = self._json(path)
+        if not isinstance(content, list):
+            raise BopFormatError(f"{path}: expected a JSON list of targets")
+        pairs = {
+            (_int(path, _get(path, d, "scene_id", i), "scene_id", i), _int(path, _get(path, d, "im_id", i), "im_id", i))
+            for i, d in enumerate(content)
+        }
+        return sorted(pairs)
+
+    def fingerprint(self, targets: Path | str | None = None) -> str:
+        """Short sha1 (12 hex) identifying the dataset cheaply, for cache keys.
+
+        Covers the bytes of camera.json, models_info.json and the targets file, and the
+        sorted names and sizes of the model files (models/ and models_eval/); absent
+        files count as absent. Image contents are not read.
+        """
+        h = hashlib.sha1()
+        for p in (self.camera_path(), self.models_info_path(), self.targets_path(targets)):
+            h.update(p.name.encode() + b"\0")
+            h.update(p.read_bytes() if p.is_file() else b"<absent>")
+            h.update(b"\0")
+        for d in sorted({self._model_dir(False, warn=False), self.root / "models_eval"}):
+            if d.is_dir():
+                for p in sorted(d.glob("*.ply")):
+                    h.update(f"{d.name}/{p.name}:{p.stat().st_size}\0".encode())
+        return h.hexdigest()[:12]
+
+
+# ---------------------------------------------------------------------------- writers
+
+
+def _list(a: np.ndarray | Iterable[float]) -> list[float]:
+    return [float(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)]
+
+
+def write_camera(root: Path | str, camera: dict, split_type: str | None = None) -> Path:
+    """Write ``<root>/camera[_<split_type>].json`` (fx, fy, cx, cy, width, height, depth_scale).
+
+    A ``K`` (3, 3) entry, if given, fills fx, fy, cx, cy and is not written itself.
+    """
+    cam = {k: v for k, v in camera.items() if k != "K"}
+    if "K" in camera:
+        K = np.asarray(camera["K"], dtype=np.float64)
+        cam.update(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]))
+    for k in ("fx", "fy", "cx", "cy", "width", "height"):
+        if k not in cam:
+            raise ValueError(f"write_camera: field '{k}' missing")
+    path = Path(root) / (f"camera_{split_type}.json" if split_type else "camera.json")
+    save_bop_json(path, cam)
+    return path
+
+
+def models_info_json(info: dict[int, ModelInfo]) -> dict[int, dict]:
+    """The models_info.json content for ``info`` (symmetry keys only when non-empty)."""
+    out = {}
+    for obj_id, m in info.items():
+        d: dict[str, Any] = {"diameter": float(m.diameter)}
+        for a, lo, size in zip("xyz", np.asarray(m.min_xyz, float), np.asarray(m.size_xyz, float)):
+            d[f"min_{a}"] = float(lo)
+            d[f"size_{a}"] = float(size)
+        if m.symmetries_discrete:
+            d["symmetries_discrete"] = [_list(np.asarray(s).reshape(4, 4)) for s in m.symmetries_discrete]
+        if m.symmetries_continuous:
+            d["symmetries_continuous"] = [
+                {"axis": _list(s["axis"]), "offset": _list(s.get("offset", np.zeros(3)))} for s in m.symmetries_continuous
+            ]
+        out[int(obj_id)] = d
+    return out
+
+
+def write_models_info(path: Path | str, info: dict[int, ModelInfo]) -> None:
+    save_bop_json(path, models_info_json(info))
+
+
+def write_scene_camera(path: Path | str, cameras: dict[int, CameraInfo]) -> None:
+    """Write scene_camera.json: cam_K (9 floats row-major), depth_scale, and the w2c pose if set."""
+    out = {}
+    for im_id, c in cameras.items():
+        d: dict[str, Any] = {"cam_K": _list(c.K), "depth_scale": float(c.depth_scale)}
+        if c.R_w2c is not None and c.t_w2c is not None:
+            d["cam_R_w2c"] = _list(c.R_w2c)
+            d["cam_t_w2c"] = _list(c.t_w2c)
+        out[int(im_id)] = d
+    save_bop_json(path, out)
+
+
+def write_scene_gt(path: Path | str, gt: dict[int, list[GtPose]]) -> None:
+    """Write scene_gt.json: per im_id a list of {cam_R_m2c (9), cam_t_m2c (3, mm), obj_id}."""
+    save_bop_json(
+        path,
+        {
+            int(im_id): [{"cam_R_m2c": _list(p.R), "cam_t_m2c": _list(p.t), "obj_id": int(p.obj_id)} for p in poses]
+            for im_id, poses in gt.items()
+        },
+    )
+
+
+def write_scene_gt_info(path: Path | str, info: dict[int, list[GtInfo]]) -> None:
+    """Write scene_gt_info.json (boxes as 4 ints, pixel counts as ints)."""
+    save_bop_json(
+        path,
+        {
+            int(im_id): [
+                {
+                    "bbox_obj": [int(v) for v in g.bbox_obj],
+                    "bbox_visib": [int(v) for v in g.bbox_visib],
+                    "px_count_all": int(g.px_count_all),
+                    "px_count_valid": int(g.px_count_valid),
+                    "px_count_visib": int(g.px_count_visib),
+                    "visib_fract": float(g.visib_fract),
+                }
+                for g in items
+            ]
+            for im_id, items in info.items()
+        },
+    )
+
+
+def write_targets(path: Path | str, targets: Iterable[Target]) -> None:
+    """Write a BOP19 targets file (list of {im_id, inst_count, obj_id, scene_id})."""
+    save_bop_json(
+        path,
+        [
+            {"im_id": int(t.im_id), "inst_count": int(t.inst_count), "obj_id": int(t.obj_id), "scene_id": int(t.scene_id)}
+            for t in targets
+        ],
+    )
+
+
+def _imwrite(path: Path, image: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"{path}: OpenCV could not write the image (unsupported extension?)")
+
+
+def save_depth_png(path: Path | str, depth_mm: np.ndarray, depth_scale: float) -> None:
+    """Write (H, W) depth in mm as a uint16 PNG of round(depth_mm / depth_scale).
+
+    Values that do not fit in uint16 raise ValueError rather than wrap around.
+    """
+    depth = np.asarray(depth_mm, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"save_depth_png({path}): depth must be (H, W), got {depth.shape}")
+    raw = np.round(depth / float(depth_scale))
+    if not np.all(np.isfinite(raw)) or raw.min(initial=0) < 0 or raw.max(initial=0) > 65535:
+        raise ValueError(
+            f"save_depth_png({path}): depth/depth_scale must lie in [0, 65535] "
+            f"(max depth {np.nanmax(depth) if depth.size else 0:.1f} mm at scale {depth_scale}); use a larger depth_scale"
+        )
+    _imwrite(Path(path), raw.astype(np.uint16))
+
+
+def save_mask_png(path: Path | str, mask: np.ndarray) -> None:
+    """Write a (H, W) bool mask as a uint8 PNG with values 0/255."""
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"save_mask_png({path}): mask must be (H, W), got {mask.shape}")
+    _imwrite(Path(path), np.where(mask.astype(bool), 255, 0).astype(np.uint8))
+
+
+def save_rgb(path: Path | str, rgb: np.ndarray) -> None:
+    """Write a (H, W, 3) uint8 RGB image (PNG lossless; JPEG if the suffix says so)."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"save_rgb({path}): expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    _imwrite(Path(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))

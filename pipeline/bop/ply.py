@@ -1,0 +1,441 @@
+"""PLY meshes as the BOP datasets distribute them.
+
+BOP models are triangle meshes in millimetres. LM/T-LESS/IC-BIN models carry vertex
+colours (``red green blue``), YCB-V/HOPE models carry per-vertex ``texture_u texture_v``
+plus a ``comment TextureFile <image>`` header line, and ``models_eval`` meshes are
+geometry only. The official files are ascii; tools re-save them as
+``binary_little_endian``. ``read_ply`` reads ascii and both binary byte orders, with any
+scalar types, extra properties (alpha, quality) and extra elements (materials), which
+it skips. ``write_ply`` always writes the compact BOP layout, so a float32/uint8
+round trip is bit-exact.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .errors import BopFormatError
+
+_PLY_TYPES: dict[str, str] = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+# Property names used for texture coordinates by BOP (texture_u/v) and other exporters.
+_UV_NAMES = (("texture_u", "texture_v"), ("s", "t"), ("u", "v"), ("texture_s", "texture_t"))
+_FACE_LIST_NAMES = ("vertex_indices", "vertex_index")
+# Grey given to meshes without colour, so renders are shaded rather than white.
+_DEFAULT_GREY = np.array([180, 180, 180, 255], dtype=np.uint8)
+
+
+@dataclass
+class PlyData:
+    """A triangle mesh read from a PLY file.
+
+    vertices: (V, 3) float32, mm. faces: (F, 3) int64 vertex indices (polygons are
+    fan-triangulated). normals: (V, 3) float32 or None. colors: (V, 3) uint8 or None.
+    texture_uv: (V, 2) float32 or None (OpenGL convention, v up, as in BOP files).
+    texture_file: the image named by ``comment TextureFile``, relative to the PLY, or None.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    texture_uv: np.ndarray | None = None
+    texture_file: str | None = None
+
+
+@dataclass
+class _Property:
+    name: str
+    dtype: str  # numpy type code without byte order, e.g. "f4"
+    count_dtype: str | None = None  # set for list properties
+
+    @property
+    def is_list(self) -> bool:
+        return self.count_dtype is not None
+
+
+@dataclass
+class _Element:
+    name: str
+    count: int
+    properties: list[_Property]
+
+
+# ---------------------------------------------------------------------------- writing
+
+
+def write_ply(
+    path: Path | str,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    texture_uv: np.ndarray | None = None,
+    texture_file: str | None = None,
+    *,
+    binary: bool = True,
+) -> None:
+    """Write a triangle mesh as a BOP-style PLY.
+
+    vertices (V, 3) and normals (V, 3) are stored as float32 (mm), colors (V, 3) as
+    uint8, texture_uv (V, 2) as float32 ``texture_u texture_v``; faces (F, 3) as
+    ``property list uchar int vertex_indices``. ``texture_file`` adds the
+    ``comment TextureFile`` line BOP uses. ``binary=False`` writes ascii (values in
+    shortest round-trip form, so it is still exact).
+    """
+    path = Path(path)
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"write_ply({path}): vertices must be (V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"write_ply({path}): faces must be (F, 3), got {f.shape}")
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"write_ply({path}): face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
+    n_v = len(v)
+    columns: list[tuple[list[str], str, np.ndarray]] = [(["x", "y", "z"], "f4", v)]
+    for names, code, arr, width in (
+        (["nx", "ny", "nz"], "f4", normals, 3),
+        (["red", "green", "blue"], "u1", colors, 3),
+        (["texture_u", "texture_v"], "f4", texture_uv, 2),
+    ):
+        if arr is None:
+            continue
+        arr = np.asarray(arr)
+        if arr.shape != (n_v, width):
+            raise ValueError(f"write_ply({path}): {'/'.join(names)} must be ({n_v}, {width}), got {arr.shape}")
+        if code == "u1" and arr.dtype != np.uint8:
+            if arr.min() < 0 or arr.max() > 255:
+                raise ValueError(f"write_ply({path}): colors must be uint8 values in [0, 255]")
+        columns.append((names, code, arr))
+
+    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
+    if texture_file is not None:
+        header.append(f"comment TextureFile {texture_file}")
+    header.append(f"element vertex {n_v}")
+    type_name = {"f4": "float", "u1": "uchar"}
+    for names, code, _ in columns:
+        header += [f"property {type_name[code]} {n}" for n in names]
+    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
+    head = ("\n".join(header) + "\n").encode("ascii")
+
+    vdtype = np.dtype([(n, "<" + code) for names, code, _ in columns for n in names])
+    vrec = np.empty(n_v, dtype=vdtype)
+    for names, code, arr in columns:
+        for i, n in enumerate(names):
+            vrec[n] = arr[:, i].astype(code)
+    frec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    frec["n"] = 3
+    frec["idx"] = f.astype(np.int32)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        fh.write(head)
+        if binary:
+            fh.write(vrec.tobytes())
+            fh.write(frec.tobytes())
+        else:
+            fh.write(_ascii_rows(vrec).encode("ascii"))
+            fh.write("".join(f"3 {a} {b} {c}\n" for a, b, c in f.tolist()).encode("ascii"))
+
+
+def _ascii_rows(rec: np.ndarray) -> str:
+    """One text line per record; float32 values in their shortest exact decimal form."""
+    cols = []
+    for name in rec.dtype.names:
+        col = rec[name]
+        if col.dtype.kind == "f":
+            cols.append([np.format_float_positional(x, unique=True, trim="-") for x in col])
+        else:
+            cols.append([str(x) for x in col.tolist()])
+    return "".join(" ".join(row) + "\n" for row in zip(*cols))
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+def _parse_header(path: Path, raw: bytes) -> tuple[str | None, list[_Element], list[str], int]:
+    """Return (byte order or None for ascii, elements, comments, offset of the body)."""
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise BopFormatError(f"{path}: not a PLY file (missing 'ply' magic or 'end_header')")
+    nl = raw.find(b"\n", end)
+    body_start = len(raw) if nl < 0 else nl + 1
+    lines = raw[:end].decode("ascii", errors="replace").replace("\r", "").split("\n")[1:]
+    fmt: str | None = None
+    seen_format = False
+    elements: list[_Element] = []
+    comments: list[str] = []
+    for lineno, line in enumerate(lines, start=2):
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "format":
+            if len(tok) < 2 or tok[1] not in _FORMATS:
+                raise BopFormatError(f"{path}: header line {lineno}: unsupported format '{line.strip()}'")
+            fmt, seen_format = _FORMATS[tok[1]], True
+        elif tok[0] == "comment":
+            comments.append(line.strip()[len("comment"):].strip())
+        elif tok[0] == "obj_info":
+            continue
+        elif tok[0] == "element":
+            if len(tok) != 3 or not tok[2].isdigit():
+                raise BopFormatError(f"{path}: header line {lineno}: malformed element line '{line.strip()}'")
+            elements.append(_Element(tok[1], int(tok[2]), []))
+        elif tok[0] == "property":
+            if not elements:
+                raise BopFormatError(f"{path}: header line {lineno}: property before any element")
+            try:
+                if tok[1] == "list":
+                    prop = _Property(tok[4], _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]])
+                else:
+                    prop = _Property(tok[2], _PLY_TYPES[tok[1]])
+            except (IndexError, KeyError):
+                raise BopFormatError(f"{path}: header line {lineno}: malformed property '{line.strip()}'") from None
+            elements[-1].properties.append(prop)
+        else:
+            raise BopFormatError(f"{path}: header line {lineno}: unknown keyword '{tok[0]}'")
+    if not seen_format:
+        raise BopFormatError(f"{path}: header has no 'format' line")
+    return fmt, elements, comments, body_start
+
+
+def _read_binary_element(path: Path, buf: bytes, offset: int, el: _Element, order: str) -> tuple[dict, int]:
+    """Read one element from a binary body; returns ({prop: array}, new offset)."""
+    if el.count == 0:
+        return {p.name: np.zeros((0,), order + p.dtype) for p in el.properties}, offset
+    # Fast path: assume every list has the length found in the first record (always
+    # true for triangle meshes), read with one structured dtype, then verify.
+    fields = []
+    pos = offset
+    for p in el.properties:
+        if p.is_list:
+            if pos + np.dtype(p.count_dtype).itemsize > len(buf):
+                raise BopFormatError(f"{path}: element '{el.name}': file truncated")
+            n = int(np.frombuffer(buf, order + p.count_dtype, 1, pos)[0])
+            fields += [(p.name + "#n", order + p.count_dtype), (p.name, order + p.dtype, (n,))]
+            pos += np.dtype(p.count_dtype).itemsize + n * np.dtype(p.dtype).itemsize
+        else:
+            fields.append((p.name, order + p.dtype))
+            pos += np.dtype(p.dtype).itemsize
+    dtype = np.dtype(fields)
+    if offset + dtype.itemsize * el.count <= len(buf):
+        rec = np.frombuffer(buf, dtype, el.count, offset)
+        if all(np.all(rec[p.name + "#n"] == rec.dtype[p.name].shape[0]) for p in el.properties if p.is_list):
+            return {p.name: rec[p.name] for p in el.properties}, offset + dtype.itemsize * el.count
+    if not any(p.is_list for p in el.properties):
+        raise BopFormatError(f"{path}: element '{el.name}': file truncated ({el.count} records expected)")
+    # Slow path: lists of varying length (polygons), read record by record.
+    out: dict[str, list] = {p.name: [] for p in el.properties}
+    pos = offset
+    try:
+        for _ in range(el.count):
+            for p in el.properties:
+                if p.is_list:
+                    n = int(np.frombuffer(buf, order + p.count_dtype, 1, pos)[0])
+                    pos += np.dtype(p.count_dtype).itemsize
+                    out[p.name].append(np.frombuffer(buf, order + p.dtype, n, pos))
+                    pos += n * np.dtype(p.dtype).itemsize
+                else:
+                    out[p.name].append(np.frombuffer(buf, order + p.dtype, 1, pos)[0])
+                    pos += np.dtype(p.dtype).itemsize
+    except ValueError:
+        raise BopFormatError(f"{path}: element '{el.name}': file truncated") from None
+    return {p.name: (out[p.name] if p.is_list else np.array(out[p.name])) for p in el.properties}, pos
+
+
+def _read_ascii_element(path: Path, tokens: list[str], start: int, el: _Element) -> tuple[dict, int]:
+    """Read one element from the whitespace-split ascii body; returns ({prop: array}, next token)."""
+    if el.count == 0:
+        return {p.name: np.zeros((0,), p.dtype) for p in el.properties}, start
+
+    def number_array(toks: list[str]) -> np.ndarray:
+        try:
+            return np.asarray(toks, dtype=np.float64)
+        except ValueError as e:
+            raise BopFormatError(f"{path}: element '{el.name}': non-numeric value ({e})") from None
+
+    # Fast path: all records have the list lengths of the first record.
+    widths = []
+    pos = start
+    for p in el.properties:
+        if p.is_list:
+            if pos >= len(tokens):
+                raise BopFormatError(f"{path}: element '{el.name}': file truncated")
+            n = int(float(tokens[pos]))
+            widths.append(1 + n)
+            pos += 1 + n
+        else:
+            widths.append(1)
+            pos += 1
+    row = sum(widths)
+    end = start + row * el.count
+    if end <= len(tokens):
+        table = number_array(tokens[start:end]).reshape(el.count, row)
+        cols = np.cumsum([0] + widths)
+        ok = all(np.all(table[:, cols[i]] == widths[i] - 1) for i, p in enumerate(el.properties) if p.is_list)
+        if ok:
+            result = {}
+            for i, p in enumerate(el.properties):
+                if p.is_list:
+                    result[p.name] = table[:, cols[i] + 1 : cols[i + 1]].astype(p.dtype)
+                else:
+                    result[p.name] = table[:, cols[i]].astype(p.dtype)
+            return result, end
+    if not any(p.is_list for p in el.properties):
+        raise BopFormatError(f"{path}: element '{el.name}': file truncated ({el.count} records expected)")
+    out: dict[str, list] = {p.name: [] for p in el.properties}
+    pos = start
+    try:
+        for _ in range(el.count):
+            for p in el.properties:
+                if p.is_list:
+                    n = int(float(tokens[pos]))
+                    out[p.name].append(number_array(tokens[pos + 1 : pos + 1 + n]).astype(p.dtype))
+                    if len(out[p.name][-1]) != n:
+                        raise IndexError
+                    pos += 1 + n
+                else:
+                    out[p.name].append(float(tokens[pos]))
+                    pos += 1
+    except IndexError:
+        raise BopFormatError(f"{path}: element '{el.name}': file truncated") from None
+    except ValueError as e:
+        raise BopFormatError(f"{path}: element '{el.name}': non-numeric value ({e})") from None
+    return {p.name: (out[p.name] if p.is_list else np.asarray(out[p.name]).astype(p.dtype)) for p in el.properties}, pos
+
+
+def _triangulate(path: Path, faces: np.ndarray | list) -> np.ndarray:
+    """(F, 3) int64 triangles from a fixed (F, n) array or a list of polygons (fan split)."""
+    if isinstance(faces, np.ndarray):
+        if faces.ndim == 2 and faces.shape[1] == 3:
+            return faces.astype(np.int64)
+        if faces.ndim == 2 and faces.shape[1] > 3:
+            faces = list(faces)
+        elif faces.size == 0:
+            return np.zeros((0, 3), np.int64)
+        else:
+            raise BopFormatError(f"{path}: faces with fewer than 3 vertices")
+    tris = []
+    for poly in faces:
+        if len(poly) < 3:
+            raise BopFormatError(f"{path}: a face has {len(poly)} vertices; at least 3 are needed")
+        for k in range(1, len(poly) - 1):
+            tris.append((poly[0], poly[k], poly[k + 1]))
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+def read_ply(path: Path | str) -> PlyData:
+    """Read a PLY mesh (ascii or binary) into a ``PlyData``; see the module docstring.
+
+    Raises ``BopFormatError`` naming the file on a missing file, bad header, truncated
+    body, missing x/y/z, or out-of-range face indices.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise BopFormatError(f"{path}: file not found") from None
+    order, elements, comments, body = _parse_header(path, raw)
+    data: dict[str, dict] = {}
+    if order is None:
+        tokens = raw[body:].decode("ascii", errors="replace").split()
+        pos = 0
+        for el in elements:
+            data[el.name], pos = _read_ascii_element(path, tokens, pos, el)
+    else:
+        pos = body
+        for el in elements:
+            data[el.name], pos = _read_binary_element(path, raw, pos, el, order)
+
+    if "vertex" not in data:
+        raise BopFormatError(f"{path}: no 'vertex' element")
+    vert = data["vertex"]
+    for name in ("x", "y", "z"):
+        if name not in vert:
+            raise BopFormatError(f"{path}: vertex element has no property '{name}'")
+    vertices = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float32)
+    normals = None
+    if all(n in vert for n in ("nx", "ny", "nz")):
+        normals = np.stack([vert["nx"], vert["ny"], vert["nz"]], axis=1).astype(np.float32)
+    colors = None
+    for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if all(n in vert for n in names):
+            c = np.stack([vert[n] for n in names], axis=1)
+            if c.dtype.kind == "f":  # some exporters store colours in [0, 1]
+                c = np.clip(np.round(c * 255.0), 0, 255)
+            colors = c.astype(np.uint8)
+            break
+    uv = None
+    for u, v in _UV_NAMES:
+        if u in vert and v in vert:
+            uv = np.stack([vert[u], vert[v]], axis=1).astype(np.float32)
+            break
+
+    faces = np.zeros((0, 3), np.int64)
+    if "face" in data:
+        face_el = data["face"]
+        key = next((n for n in _FACE_LIST_NAMES if n in face_el), None)
+        if key is None:
+            raise BopFormatError(f"{path}: face element has no 'vertex_indices' list")
+        faces = _triangulate(path, face_el[key])
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise BopFormatError(
+            f"{path}: face indices out of range [0, {len(vertices)}): min {faces.min()}, max {faces.max()}"
+        )
+
+    texture_file = None
+    for c in comments:
+        parts = c.split(None, 1)
+        if len(parts) == 2 and parts[0].lower() == "texturefile":
+            texture_file = parts[1].strip()
+    return PlyData(vertices, faces, normals, colors, uv, texture_file)
+
+
+# ---------------------------------------------------------------------------- trimesh
+
+
+def load_mesh(path: Path | str) -> trimesh.Trimesh:
+    """Load a PLY as a ``trimesh.Trimesh`` (mm) that pyrender renders in colour.
+
+    Vertex order is kept (``process=False``), so indices match the file. Texture UVs
+    with their image become ``TextureVisuals``; vertex colours become ``ColorVisuals``;
+    meshes with neither get a uniform grey. A named but missing texture image raises
+    ``BopFormatError``.
+    """
+    path = Path(path)
+    ply = read_ply(path)
+    mesh = trimesh.Trimesh(
+        vertices=ply.vertices.astype(np.float64),
+        faces=ply.faces,
+        vertex_normals=None if ply.normals is None else ply.normals.astype(np.float64),
+        process=False,
+    )
+    if ply.texture_uv is not None and ply.texture_file is not None:
+        from PIL import Image
+
+        tex_path = path.parent / ply.texture_file
+        if not tex_path.is_file():
+            raise BopFormatError(f"{path}: texture file '{ply.texture_file}' named in the header not found at {tex_path}")
+        with Image.open(tex_path) as im:
+            image = im.convert("RGB")
+        material = trimesh.visual.material.SimpleMaterial(image=image)
+        mesh.visual = trimesh.visual.TextureVisuals(uv=ply.texture_uv.astype(np.float64), material=material)
+    elif ply.colors is not None:
+        rgba = np.concatenate([ply.colors, np.full((len(ply.colors), 1), 255, np.uint8)], axis=1)
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
+    else:
+        if ply.texture_uv is not None:
+            warnings.warn(f"{path}: texture coordinates without a TextureFile comment; rendering grey", stacklevel=2)
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=np.tile(_DEFAULT_GREY, (len(ply.vertices), 1)))
+    return mesh

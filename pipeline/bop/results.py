@@ -1,0 +1,166 @@
+"""Pose estimates in the BOP results CSV format.
+
+``scene_id,im_id,obj_id,score,R,t,time`` with one estimate per line; R is 9
+space-separated values (row-major), t 3 values in mm, time the wall time spent on the
+whole image in seconds (-1 if unknown). The BOP toolkit requires the same time on
+every line of an image, which ``write_results_csv`` checks.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+import pandas as pd
+
+from .errors import BopFormatError
+from .jsonio import atomic_write_text, load_json
+
+HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+COLUMNS = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+
+
+def _rows(rows: pd.DataFrame | Iterable[Mapping[str, Any]]) -> Iterable[Mapping[str, Any]]:
+    if isinstance(rows, pd.DataFrame):
+        return (r for _, r in rows.iterrows())
+    return rows
+
+
+def _num(x: float) -> str:
+    # repr of a Python float is the shortest exact form, so reading back is lossless.
+    return repr(float(x))
+
+
+def write_results_csv(path: Path | str, rows: pd.DataFrame | Iterable[Mapping[str, Any]]) -> None:
+    """Write estimates (DataFrame or dicts with scene_id, im_id, obj_id, score, R (3, 3), t (3,) mm, time s).
+
+    ``time`` may be omitted (written as -1). Raises ValueError on a bad shape,
+    a non-finite value, or an image whose lines disagree on time.
+    """
+    lines = [HEADER]
+    times: dict[tuple[int, int], float] = {}
+    for i, r in enumerate(_rows(rows)):
+        try:
+            R = np.asarray(r["R"], dtype=np.float64).reshape(9)
+            t = np.asarray(r["t"], dtype=np.float64).reshape(3)
+            scene_id, im_id, obj_id = int(r["scene_id"]), int(r["im_id"]), int(r["obj_id"])
+            score = float(r["score"])
+        except (KeyError, ValueError, TypeError) as e:
+            raise ValueError(f"write_results_csv({path}): row {i}: {e!r}") from None
+        time = r.get("time", -1.0) if hasattr(r, "get") else -1.0
+        time = -1.0 if time is None or (isinstance(time, float) and math.isnan(time)) else float(time)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and math.isfinite(score)):
+            raise ValueError(f"write_results_csv({path}): row {i}: non-finite score, R or t")
+        key = (scene_id, im_id)
+        if times.setdefault(key, time) != time:
+            raise ValueError(
+                f"write_results_csv({path}): row {i}: time {time} differs from {times[key]} given earlier for "
+                f"scene {scene_id} image {im_id}; BOP needs one time per image"
+            )
+        lines.append(
+            f"{scene_id},{im_id},{obj_id},{_num(score)},{' '.join(map(_num, R))},{' '.join(map(_num, t))},{_num(time)}"
+        )
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_results_csv(path: Path | str) -> pd.DataFrame:
+    """Read a BOP results CSV into a DataFrame.
+
+    Columns: scene_id, im_id, obj_id (int64), score (float64), R (object: (3, 3)
+    float64 arrays), t (object: (3,) float64 mm), time (float64 s; -1 when the file has
+    no time column). A malformed line raises ``BopFormatError`` naming the line number
+    and the field.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise BopFormatError(f"{path}: file not found") from None
+    lines = text.splitlines()
+    if not lines:
+        raise BopFormatError(f"{path}: empty file (expected header '{HEADER}')")
+    header = [h.strip() for h in lines[0].split(",")]
+    if header not in (COLUMNS, COLUMNS[:-1]):
+        raise BopFormatError(f"{path}: line 1: header must be '{HEADER}' (time optional), got '{lines[0]}'")
+    has_time = len(header) == 7
+    records: dict[str, list] = {c: [] for c in COLUMNS}
+    for lineno, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        parts = line.split(",")
+        if len(parts) != len(header):
+            raise BopFormatError(f"{path}: line {lineno}: expected {len(header)} comma-separated fields, got {len(parts)}")
+
+        def field(name: str, parse, n: int | None = None):
+            raw = parts[header.index(name)].strip()
+            try:
+                if n is None:
+                    value = parse(raw)
+                else:
+                    value = np.array([float(v) for v in raw.split()], dtype=np.float64)
+                    if value.size != n:
+                        raise ValueError(f"expected {n} values, got {value.size}")
+                    if not np.all(np.isfinite(value)):
+                        raise ValueError("non-finite value")
+            except ValueError as e:
+                raise BopFormatError(f"{path}: line {lineno}, field '{name}': {e} (got '{raw}')") from None
+            return value
+
+        records["scene_id"].append(field("scene_id", int))
+        records["im_id"].append(field("im_id", int))
+        records["obj_id"].append(field("obj_id", int))
+        records["score"].append(field("score", float))
+        records["R"].append(field("R", None, 9).reshape(3, 3))
+        records["t"].append(field("t", None, 3))
+        records["time"].append(field("time", float) if has_time else -1.0)
+    df = pd.DataFrame(
+        {
+            "scene_id": pd.Series(records["scene_id"], dtype="int64"),
+            "im_id": pd.Series(records["im_id"], dtype="int64"),
+            "obj_id": pd.Series(records["obj_id"], dtype="int64"),
+            "score": pd.Series(records["score"], dtype="float64"),
+            "R": pd.Series(records["R"], dtype=object),
+            "t": pd.Series(records["t"], dtype=object),
+            "time": pd.Series(records["time"], dtype="float64"),
+        }
+    )
+    return df
+
+
+def read_estimates_json(path: Path | str) -> pd.DataFrame:
+    """Estimates stored as a JSON list of {scene_id, im_id, obj_id, score, cam_R_m2c, cam_t_m2c[, time]}.
+
+    Same columns as ``read_results_csv`` (used by the estimate files shipped with the
+    shared test data). Errors name the entry index and the field.
+    """
+    path = Path(path)
+    content = load_json(path)
+    if not isinstance(content, list):
+        raise BopFormatError(f"{path}: expected a JSON list of estimates")
+    rows = []
+    for i, d in enumerate(content):
+        if not isinstance(d, dict):
+            raise BopFormatError(f"{path}: entry {i}: expected an object")
+        for k in ("scene_id", "im_id", "obj_id", "score", "cam_R_m2c", "cam_t_m2c"):
+            if k not in d:
+                raise BopFormatError(f"{path}: entry {i}, field '{k}' missing")
+        try:
+            R = np.asarray(d["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
+            t = np.asarray(d["cam_t_m2c"], dtype=np.float64).reshape(3)
+        except (ValueError, TypeError) as e:
+            raise BopFormatError(f"{path}: entry {i}, field 'cam_R_m2c'/'cam_t_m2c': {e}") from None
+        rows.append(
+            {
+                "scene_id": int(d["scene_id"]),
+                "im_id": int(d["im_id"]),
+                "obj_id": int(d["obj_id"]),
+                "score": float(d["score"]),
+                "R": R,
+                "t": t,
+                "time": float(d.get("time", -1.0)),
+            }
+        )
+    df = pd.DataFrame(rows, columns=COLUMNS)
+    return df.astype({"scene_id": "int64", "im_id": "int64", "obj_id": "int64", "score": "float64", "time": "float64"})

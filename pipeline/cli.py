@@ -1,0 +1,160 @@
+"""The ``freeze`` command line (typer)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="FreeZe: training-free zero-shot 6D pose estimation, as a cached BOP pipeline.")
+console = Console(stderr=True)
+
+
+def _overrides(config: list[str] | None) -> dict[str, str]:
+    out = {}
+    for kv in config or []:
+        if "=" not in kv:
+            raise typer.BadParameter(f"expected key=value, got '{kv}'")
+        k, v = kv.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+@app.command()
+def synth(
+    out: Path = typer.Argument(..., help="dataset folder to create (BOP layout)"),
+    name: str = typer.Option("synthmini", help="dataset name (used in file names)"),
+    preset: str = typer.Option("mini", help="mini | bench | tiny"),
+    seed: int = typer.Option(0, help="random seed; the output is a function of (preset, seed)"),
+    progress: bool = typer.Option(True, help="show a progress bar"),
+) -> None:
+    """Generate a synthetic BOP-format dataset with a faulty CNOS-style prior."""
+    from pipeline.synth import generate
+
+    summary = generate(out, name, preset=preset, seed=seed, progress=progress)
+    console.print_json(json.dumps(summary))
+
+
+@app.command()
+def stage(
+    name: str = typer.Argument(..., help="stage name (render_templates, model_features, ...)"),
+    dataset: str = typer.Option(..., help="dataset manifest name"),
+    item: str = typer.Option(..., help="obj_XXXXXX, scene_XXXXXX, all or dataset"),
+    run_json: Optional[str] = typer.Option(None, help="resolved run manifest as JSON (Snakemake passes this)"),
+    config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value (without --run-json)"),
+    expect_sig: Optional[str] = typer.Option(None, help="fail unless the stage signature equals this"),
+    progress: bool = typer.Option(True, help="show progress bars"),
+) -> None:
+    """Run one stage for one item (what each Snakemake job calls)."""
+    from pipeline.plan import plan_from_json
+    from stages import stage_module
+
+    plan = plan_from_json(run_json, _overrides(config))[dataset]
+    sp = plan[name]
+    if expect_sig and sp.signature != expect_sig:
+        console.print(f"[red]stage {name} of {dataset}: the plan's signature is {sp.signature}, but {expect_sig} was "
+                      "requested (code or manifests changed since the DAG was built?)")
+        raise typer.Exit(2)
+    console.print(f"[bold]{name}[/] {dataset}/{item} -> {sp.item_dir(item)}")
+    try:
+        stage_module(name).run(plan, item, progress=progress)
+    except Exception as e:
+        console.print(f"[red]stage {name} failed on {dataset}/{item}: {type(e).__name__}: {e}")
+        raise
+
+
+@app.command()
+def plan(
+    dataset: Optional[list[str]] = typer.Option(None, help="datasets (default: the run's)"),
+    config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
+) -> None:
+    """Print every stage's signature and artifact folder."""
+    from pipeline.plan import plan_from_json
+
+    rp = plan_from_json(None, _overrides(config))
+    table = Table("dataset", "stage", "signature", "folder")
+    for ds in dataset or rp.run.datasets:
+        ok, why = rp.available(ds)
+        if not ok:
+            console.print(why)
+            continue
+        for st in rp[ds].stages.values():
+            table.add_row(ds, st.stage, st.signature, str(st.dir))
+    Console().print(table)
+
+
+@app.command()
+def score(
+    results: Path = typer.Argument(..., exists=True, dir_okay=False, help="BOP results CSV"),
+    dataset_root: Path = typer.Option(..., exists=True, file_okay=False, help="BOP dataset folder (camera.json, models_eval/, test/...)"),
+    split: str = typer.Option("test"),
+    targets: Optional[Path] = typer.Option(None, help="targets file (default <root>/test_targets_bop19.json)"),
+    out: Optional[Path] = typer.Option(None, help="write errors.parquet and scores.json here"),
+    workers: int = typer.Option(1, help="worker processes"),
+    vsd_delta: float = typer.Option(15.0, help="VSD tolerance in mm (5 for ITODD)"),
+) -> None:
+    """Score a BOP results CSV with the BOP19 metrics (VSD, MSSD, MSPD, AR)."""
+    from pipeline.metrics import score_results_file
+
+    s = score_results_file(results, dataset_root, split=split, targets_file=targets, out_dir=out,
+                           n_workers=workers, vsd_delta=vsd_delta)
+    _print_scores({results.stem: s.summary})
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def _print_scores(rows: dict[str, dict]) -> str:
+    """Print the AR table and return it as Markdown."""
+    cols = ["AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "n_targets", "n_estimates", "time_per_image_s"]
+    table = Table("dataset", *cols, title="BOP19 average recall")
+    md = ["| dataset | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
+    for name, s in rows.items():
+        vals = [_fmt(s.get(c)) for c in cols]
+        table.add_row(name, *vals)
+        md.append(f"| {name} | " + " | ".join(vals) + " |")
+    Console().print(table)
+    return "\n".join(md) + "\n"
+
+
+@app.command("table")
+def ar_table(
+    config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
+    run_json: Optional[str] = typer.Option(None, help="resolved run manifest as JSON (Snakemake passes this)"),
+    out: Optional[Path] = typer.Option(None, help="also write the table as Markdown here"),
+) -> None:
+    """Print the AR table of the run's datasets from their score artifacts."""
+    from pipeline.plan import plan_from_json
+    from pipeline.store import read_manifest
+
+    rp = plan_from_json(run_json, _overrides(config))
+    rows = {}
+    for ds in rp.run.datasets:
+        ok, why = rp.available(ds)
+        if not ok:
+            console.print(why)
+            continue
+        path = rp[ds]["score"].item_dir("all")
+        try:
+            rows[ds] = read_manifest(path)["summary"]
+        except FileNotFoundError:
+            console.print(f"{ds}: not scored yet ({path} missing): run `snakemake --cores 2 bop_all`")
+    md = _print_scores(rows)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(md)
+
+
+def main() -> None:  # pragma: no cover
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(app())

@@ -1,0 +1,230 @@
+"""Manifests and their schema.
+
+Three kinds of YAML manifest live in ``manifests/``:
+
+- ``runs/<name>.yaml``: what ``bop_all`` runs: the method name, the datasets, which
+  encoder manifests to use, and the parameters of every stage.
+- ``datasets/<name>.yaml``: one dataset (synthetic preset or a BOP dataset on disk).
+- ``encoders/<name>.yaml``: one encoder configuration (registry name + parameters).
+
+All are validated by the pydantic models below; a bad value fails with the file and
+the field. Snakemake's ``--config`` may override a few top-level run keys with plain
+strings (``datasets=a,b``, ``geometric_encoder=...``, ``visual_encoder=...``,
+``bop_root=...``, ``method=...``, ``run=manifests/runs/other.yaml``).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+MANIFEST_DIR = PROJECT_ROOT / "manifests"
+DEFAULT_RUN = MANIFEST_DIR / "runs" / "default.yaml"
+
+_NAME = re.compile(r"^[a-z0-9][a-z0-9-]*$")
+_DATASET_NAME = re.compile(r"^[a-z0-9]+$")
+
+
+class ManifestError(ValueError):
+    """A manifest file is missing or invalid; the message names the file and field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ------------------------------------------------------------------ stage parameters
+
+
+class RenderTemplatesParams(_Strict):
+    n_views: int = Field(42, ge=1, description="template viewpoints on a Fibonacci sphere")
+    image_size: int = Field(224, ge=32, description="square template side in px")
+    fill: float = Field(0.85, gt=0, le=1, description="fraction of the side the object diameter spans")
+    distance_factor: float = Field(3.0, gt=1, description="camera distance in object diameters")
+
+
+class ModelFeaturesParams(_Strict):
+    n_points: int = Field(5000, ge=100, description="N surface points sampled on the model")
+    seed: int = 0
+    batch_size: int = Field(16, ge=1, description="template crops per visual-encoder batch")
+
+
+class SegmentPriorParams(_Strict):
+    top_k: int = Field(3, ge=1, description="candidates kept per (image, object), most confident first")
+    min_score: float = Field(0.0, ge=0.0, description="drop detections scoring below this")
+    min_area: int = Field(64, ge=1, description="drop masks with fewer pixels")
+
+
+class SceneFeaturesParams(_Strict):
+    n_points: int = Field(1000, ge=10, description="M points sampled per candidate")
+    min_points: int = Field(50, ge=3, description="candidates with fewer valid depth pixels are skipped")
+    crop_margin: float = Field(0.1, ge=0.0, description="margin around the bbox, fraction of its side")
+    seed: int = 0
+
+
+class RegisterParams(_Strict):
+    pca_dim: int = Field(64, ge=1, description="V: visual feature dims after per-object PCA")
+    inlier_frac: float = Field(0.05, gt=0, description="RANSAC inlier distance, fraction of the diameter")
+    max_iterations: int = Field(50000, ge=100)
+    confidence: float = Field(0.9999, gt=0, lt=1)
+    mutual: bool = False
+    seed: int = 0
+
+
+class RefineParams(_Strict):
+    max_corr_frac: float = Field(0.05, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
+    iterations: int = Field(50, ge=1)
+    point_to_plane: bool = True
+
+
+class ScoreParams(_Strict):
+    n_workers: int = Field(1, ge=1, description="worker processes for rendering VSD depth")
+
+
+# A field named "register" (the stage) shadows ABCMeta.register on the class, which
+# nothing here uses; instances return the field value.
+warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
+
+
+class StageParams(_Strict):
+    render_templates: RenderTemplatesParams = RenderTemplatesParams()
+    model_features: ModelFeaturesParams = ModelFeaturesParams()
+    segment_prior: SegmentPriorParams = SegmentPriorParams()
+    scene_features: SceneFeaturesParams = SceneFeaturesParams()
+    register: RegisterParams = RegisterParams()
+    refine: RefineParams = RefineParams()
+    score: ScoreParams = ScoreParams()
+
+
+# ---------------------------------------------------------------------- manifests
+
+
+class EncoderManifest(_Strict):
+    """One encoder configuration: registry ``encoder`` name and its parameters."""
+
+    encoder: str
+    kind: Literal["geometric", "visual"]
+    params: dict[str, Any] = {}
+    description: str = ""
+
+
+class DatasetManifest(_Strict):
+    """One dataset: a synthetic preset made by ``freeze synth`` or a BOP dataset on disk."""
+
+    name: str
+    kind: Literal["synthetic", "bop"]
+    split: str = "test"
+    split_type: str | None = None
+    targets_file: str = "test_targets_bop19.json"
+    vsd_delta: float = Field(15.0, gt=0, description="VSD misalignment tolerance in mm")
+    # synthetic datasets
+    preset: str | None = None
+    seed: int = 0
+    # where the localisation prior lives; relative to the dataset root (synthetic) or
+    # to bop_root (real datasets)
+    prior: str
+    # real datasets: folder name under bop_root
+    folder: str | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _name_ok(cls, v: str) -> str:
+        if not _DATASET_NAME.match(v):
+            raise ValueError("dataset names are lowercase letters and digits only (BOP file names split on '_' and '-')")
+        return v
+
+
+class RunManifest(_Strict):
+    """What ``bop_all`` runs."""
+
+    method: str = "freeze"
+    datasets: list[str]
+    geometric_encoder: str = "fpfh"
+    visual_encoder: str = "colortex"
+    bop_root: str | None = None
+    stages: StageParams = StageParams()
+
+    @field_validator("method")
+    @classmethod
+    def _method_ok(cls, v: str) -> str:
+        if not _NAME.match(v):
+            raise ValueError("method names are lowercase letters, digits and '-' (no '_': BOP result names split on it)")
+        return v
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.exists():
+        raise ManifestError(f"{path}: manifest not found")
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+    except yaml.YAMLError as e:
+        raise ManifestError(f"{path}: not valid YAML: {e}") from e
+    if not isinstance(data, dict):
+        raise ManifestError(f"{path}: expected a mapping at the top level")
+    return data
+
+
+def _validate(model: type[BaseModel], data: Mapping[str, Any], source: str):
+    try:
+        return model.model_validate(dict(data))
+    except ValidationError as e:
+        lines = []
+        for err in e.errors():
+            loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+            lines.append(f"  field '{loc}': {err['msg']}")
+        raise ManifestError(f"{source}: invalid manifest\n" + "\n".join(lines)) from None
+
+
+def load_encoder_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> EncoderManifest:
+    path = Path(manifest_dir) / "encoders" / f"{name}.yaml"
+    if not path.exists():
+        known = sorted(p.stem for p in (Path(manifest_dir) / "encoders").glob("*.yaml"))
+        raise ManifestError(f"{path}: no encoder manifest named '{name}' (known: {', '.join(known)})")
+    return _validate(EncoderManifest, _read_yaml(path), str(path))
+
+
+def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> DatasetManifest:
+    path = Path(manifest_dir) / "datasets" / f"{name}.yaml"
+    if not path.exists():
+        known = sorted(p.stem for p in (Path(manifest_dir) / "datasets").glob("*.yaml"))
+        raise ManifestError(f"{path}: no dataset manifest named '{name}' (known: {', '.join(known)})")
+    ds = _validate(DatasetManifest, _read_yaml(path), str(path))
+    if ds.name != name:
+        raise ManifestError(f"{path}: field 'name' is '{ds.name}' but the file is named '{name}'")
+    if ds.kind == "synthetic" and not ds.preset:
+        raise ManifestError(f"{path}: field 'preset' is required for synthetic datasets")
+    return ds
+
+
+# Flat keys that `snakemake --config key=value` may set.
+_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "method")
+
+
+def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) -> RunManifest:
+    """Resolve the run manifest.
+
+    ``config`` is Snakemake's config dict (or CLI overrides): it may name another
+    manifest with ``run`` and override the flat keys in ``_OVERRIDES``; any other key
+    of the run manifest is taken from ``config`` as-is (so a ``configfile`` works too).
+    """
+    config = dict(config or {})
+    run_path = Path(config.pop("run", None) or path or DEFAULT_RUN)
+    if not run_path.is_absolute() and not run_path.exists():
+        run_path = PROJECT_ROOT / run_path
+    data = _read_yaml(run_path)
+    for key, value in config.items():
+        if key in _OVERRIDES and value is not None:
+            if key == "datasets" and isinstance(value, str):
+                value = [v for v in value.split(",") if v]
+            data[key] = value
+        elif key in data and key not in _OVERRIDES:
+            data[key] = value
+    return _validate(RunManifest, data, str(run_path))

@@ -1,0 +1,159 @@
+"""Encoder interfaces and the name -> factory registry.
+
+An encoder is described in manifests by an :class:`EncoderSpec` (a name and plain JSON
+parameters) and built with :func:`build_encoder`. Built-in encoders (``fpfh``,
+``colortex``) need no weights and are registered on first use; other modules add
+theirs with :func:`register_encoder`.
+
+Every encoder exposes ``name``, ``kind`` (``"geometric"`` or ``"visual"``), ``version``
+(bumped whenever outputs change; part of cache keys), ``dim``, ``signature()`` (short
+readable name without ``_``, used in artifact directory names) and ``cache_params()``
+(every parameter that changes outputs, as plain JSON).
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import json
+from typing import Any, Callable, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+EncoderKind = Literal["geometric", "visual"]
+
+# Modules whose import registers the built-in encoders. Imported lazily so that the
+# registry has no import-time dependency on them (and no import cycle).
+_BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex")
+
+
+class EncoderSpec(BaseModel):
+    """Which encoder to build: registry ``name`` and its factory keyword ``params``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("params")
+    @classmethod
+    def _plain_json(cls, value: dict[str, Any]) -> dict[str, Any]:
+        try:
+            json.dumps(value, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"encoder params must be plain JSON values: {exc}") from exc
+        return value
+
+
+class _EncoderBase(abc.ABC):
+    name: str
+    kind: EncoderKind
+    version: str
+    dim: int
+
+    def signature(self) -> str:
+        """Short readable name (no ``_``), e.g. ``fpfh-ms``."""
+        return self.name.replace("_", "-")
+
+    @abc.abstractmethod
+    def cache_params(self) -> dict[str, Any]:
+        """Everything that changes the outputs, as plain JSON values."""
+
+    def describe(self) -> dict[str, Any]:
+        """Name, kind, version, dim and cache params in one JSON-able dict."""
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "version": self.version,
+            "dim": int(self.dim),
+            "params": self.cache_params(),
+        }
+
+
+class GeometricEncoder(_EncoderBase):
+    """Per-point descriptors of a 3D point cloud."""
+
+    kind: EncoderKind = "geometric"
+
+    @abc.abstractmethod
+    def encode(
+        self,
+        points: np.ndarray,
+        normals: np.ndarray | None,
+        diameter: float,
+        *,
+        viewpoint: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Descriptors (N, dim) float32 of ``points`` (N, 3) float32 mm.
+
+        normals: (N, 3) outward unit normals, or None to estimate them and orient them
+        towards ``viewpoint`` ((3,) mm, the camera centre for scene points).
+        diameter: object diameter in mm; scales are relative to it.
+        """
+
+
+class VisualEncoder(_EncoderBase):
+    """Dense feature maps of square RGB crops."""
+
+    kind: EncoderKind = "visual"
+    input_size: int
+
+    @abc.abstractmethod
+    def encode(self, images: np.ndarray) -> np.ndarray:
+        """Feature maps (B, dim, h, w) float32 of ``images`` (B, S, S, 3) uint8 RGB with
+        ``S == input_size``; ``h, w <= S``. Cell ``j`` of the map covers crop pixels
+        ``[j*S/w, (j+1)*S/w)`` (its centre is at crop coordinate ``(j+0.5)*S/w - 0.5``),
+        which is the convention :mod:`pipeline.encoders.lifting` upsamples with."""
+
+
+Encoder = GeometricEncoder | VisualEncoder
+EncoderFactory = Callable[..., Encoder]
+
+_REGISTRY: dict[str, tuple[EncoderKind, EncoderFactory]] = {}
+_builtins_loaded = False
+
+
+def register_encoder(name: str, kind: EncoderKind, factory: EncoderFactory) -> None:
+    """Register ``factory(**params) -> encoder`` under ``name``.
+
+    Names must be non-empty and contain no ``_`` (they appear in file names and
+    Snakemake wildcards). Re-registering a name replaces the previous factory.
+    """
+    if not name or "_" in name:
+        raise ValueError(f"encoder name {name!r} must be non-empty and contain no '_'")
+    if kind not in ("geometric", "visual"):
+        raise ValueError(f"encoder {name!r}: kind must be 'geometric' or 'visual', got {kind!r}")
+    _REGISTRY[name] = (kind, factory)
+
+
+def _load_builtins() -> None:
+    global _builtins_loaded
+    if not _builtins_loaded:
+        _builtins_loaded = True
+        for module in _BUILTIN_MODULES:
+            importlib.import_module(module)
+
+
+def known_encoders() -> dict[str, EncoderKind]:
+    """Registered encoder names and their kinds."""
+    _load_builtins()
+    return {name: kind for name, (kind, _) in sorted(_REGISTRY.items())}
+
+
+def build_encoder(spec: EncoderSpec | dict[str, Any]) -> Encoder:
+    """Build the encoder described by ``spec`` (an :class:`EncoderSpec` or its dict)."""
+    if not isinstance(spec, EncoderSpec):
+        spec = EncoderSpec.model_validate(spec)
+    _load_builtins()
+    if spec.name not in _REGISTRY:
+        known = ", ".join(f"{n} ({k})" for n, k in known_encoders().items())
+        raise ValueError(f"unknown encoder {spec.name!r}; known encoders: {known}")
+    kind, factory = _REGISTRY[spec.name]
+    try:
+        encoder = factory(**spec.params)
+    except TypeError as exc:
+        raise ValueError(f"encoder {spec.name!r}: invalid params {spec.params}: {exc}") from exc
+    if encoder.kind != kind:
+        raise TypeError(f"encoder {spec.name!r} registered as {kind} but built a {encoder.kind} encoder")
+    return encoder

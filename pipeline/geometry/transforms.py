@@ -1,0 +1,110 @@
+"""Rigid-transform helpers in BOP conventions.
+
+A pose is a pair ``(R (3, 3) float64, t (3,) float64 mm)`` that maps model points to
+camera points: ``x_c = R @ x_m + t``. Functions accept anything array-like and return
+float64 arrays; point arrays keep their dtype.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def rt_to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 float64 homogeneous matrix from ``R`` (3, 3) and ``t`` (3,) mm."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def matrix_to_rt(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R (3, 3), t (3,))`` float64 from a 4x4 homogeneous matrix."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"expected a (4, 4) matrix, got shape {T.shape}")
+    return T[:3, :3].copy(), T[:3, 3].copy()
+
+
+def invert(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse pose: if ``(R, t)`` maps a->b, the result maps b->a."""
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    return R.T.copy(), -R.T @ t
+
+
+def compose(
+    R_ab: np.ndarray, t_ab: np.ndarray, R_bc: np.ndarray, t_bc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose a->c from a->b followed by b->c: ``x_c = R_bc (R_ab x_a + t_ab) + t_bc``."""
+    R_ab = np.asarray(R_ab, dtype=np.float64).reshape(3, 3)
+    R_bc = np.asarray(R_bc, dtype=np.float64).reshape(3, 3)
+    t_ab = np.asarray(t_ab, dtype=np.float64).reshape(3)
+    t_bc = np.asarray(t_bc, dtype=np.float64).reshape(3)
+    return R_bc @ R_ab, R_bc @ t_ab + t_bc
+
+
+def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Apply a pose to points (N, 3); returns (N, 3) in the dtype of ``points``."""
+    pts = np.asarray(points)
+    out = pts.astype(np.float64) @ np.asarray(R, dtype=np.float64).reshape(3, 3).T
+    out += np.asarray(t, dtype=np.float64).reshape(1, 3)
+    return out.astype(pts.dtype if pts.dtype.kind == "f" else np.float64)
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle in degrees of the relative rotation ``R_a^T R_b`` (geodesic distance)."""
+    R_rel = np.asarray(R_a, dtype=np.float64).reshape(3, 3).T @ np.asarray(R_b, dtype=np.float64).reshape(3, 3)
+    # Clipping guards acos against round-off just outside [-1, 1].
+    cos = np.clip((np.trace(R_rel) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)))
+
+
+def random_rotation(rng: np.random.Generator | int | None = None) -> np.ndarray:
+    """Uniformly distributed rotation (3, 3) float64 over SO(3)."""
+    rng = np.random.default_rng(rng)
+    return Rotation.random(random_state=rng).as_matrix()
+
+
+def rotation_about_axis(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Rotation (3, 3) of ``angle_deg`` degrees about ``axis`` (any non-zero length)."""
+    axis = np.asarray(axis, dtype=np.float64).reshape(3)
+    norm = np.linalg.norm(axis)
+    if norm == 0:
+        raise ValueError("rotation axis must be non-zero")
+    return Rotation.from_rotvec(axis / norm * np.radians(angle_deg)).as_matrix()
+
+
+def perturb_pose(
+    R: np.ndarray,
+    t: np.ndarray,
+    angle_deg: float,
+    translation_mm: float,
+    rng: np.random.Generator | int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose rotated by exactly ``angle_deg`` about a random axis through the model
+    origin (applied on the model side) and shifted by exactly ``translation_mm`` in a
+    random direction."""
+    rng = np.random.default_rng(rng)
+    axis = rng.normal(size=3)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    R_new = np.asarray(R, dtype=np.float64) @ rotation_about_axis(axis, angle_deg)
+    return R_new, np.asarray(t, dtype=np.float64).reshape(3) + translation_mm * direction
+
+
+def look_at_rotation(camera_position: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """``R_m2c`` of an OpenCV camera at ``camera_position`` (model frame, mm) looking at
+    the model origin. ``up`` is the model-frame direction that should appear up in the
+    image (default +z, or +y when the camera lies on the z axis)."""
+    c = np.asarray(camera_position, dtype=np.float64).reshape(3)
+    z = -c / np.linalg.norm(c)  # optical axis, towards the origin
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    up = np.asarray(up, dtype=np.float64).reshape(3)
+    x = np.cross(z, up)  # image right (OpenCV y points down, so right = z x up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    # Rows are the camera axes expressed in the model frame.
+    return np.stack([x, y, z], axis=0)

@@ -1,0 +1,178 @@
+"""Per-image computation of MSSD, MSPD and VSD for every (estimate, GT instance) pair.
+
+An :class:`ImageJob` is plain data (poses, ids, intrinsics), so jobs can be sent to
+worker processes; each process holds one :class:`ErrorCalculator` that loads the
+``models_eval`` meshes it needs and its own renderer (EGL contexts must not cross a
+``fork``, so workers are started with ``spawn``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.bop import BopDataset, read_ply
+
+from .pose_errors import mspd, mssd
+from .symmetry import DEFAULT_MAX_SYM_DISC_STEP, model_symmetries
+from .vsd import VSD_TAUS, sphere_projections_overlap, vsd
+
+
+@dataclass(frozen=True)
+class ErrorParams:
+    """Settings of the error computation (plain values, picklable)."""
+
+    vsd_delta: float = 15.0
+    vsd_taus: tuple[float, ...] = tuple(VSD_TAUS.tolist())
+    max_sym_disc_step: float = DEFAULT_MAX_SYM_DISC_STEP
+    compute_vsd: bool = True
+
+
+@dataclass
+class ImageJob:
+    """Everything about one image except its depth and the models.
+
+    K: (3, 3) float64. gts: (gt_id, obj_id, R (3, 3), t (3,) mm) for the GT instances
+    of the objects being scored. ests: (est_id, obj_id, score, R, t) of the estimates
+    kept for scoring (est_id = index among the image's estimates of that object in the
+    results file, as in the BOP toolkit).
+    """
+
+    scene_id: int
+    im_id: int
+    K: np.ndarray
+    width: int
+    height: int
+    gts: list[tuple[int, int, np.ndarray, np.ndarray]] = field(default_factory=list)
+    ests: list[tuple[int, int, float, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+
+@dataclass
+class _Model:
+    pts: np.ndarray  # (V, 3) float64 mm, models_eval vertices
+    faces: np.ndarray  # (F, 3) int64
+    sym_R: np.ndarray  # (S, 3, 3)
+    sym_t: np.ndarray  # (S, 3) mm
+    diameter: float
+
+
+class ErrorCalculator:
+    """Computes the pose errors of :class:`ImageJob` s against one dataset."""
+
+    def __init__(self, dataset: BopDataset, params: ErrorParams):
+        self.dataset = dataset
+        self.params = params
+        self._models: dict[int, _Model] = {}
+        self._renderers: dict[tuple[int, int], Any] = {}
+        self._taus = np.asarray(params.vsd_taus, dtype=np.float64)
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        self._renderers.clear()
+
+    def model(self, obj_id: int) -> _Model:
+        if obj_id not in self._models:
+            infos = self.dataset.models_info()
+            if obj_id not in infos:
+                raise KeyError(f"{self.dataset.models_info_path()}: no entry for obj_id {obj_id}")
+            ply = read_ply(self.dataset.model_path(obj_id, eval=True))
+            sym_R, sym_t = model_symmetries(infos[obj_id], self.params.max_sym_disc_step)
+            self._models[obj_id] = _Model(
+                ply.vertices.astype(np.float64), ply.faces, sym_R, sym_t, float(infos[obj_id].diameter)
+            )
+        return self._models[obj_id]
+
+    def _renderer(self, width: int, height: int, obj_id: int):
+        key = (width, height)
+        if key not in self._renderers:
+            from pipeline.render.renderer import Renderer
+
+            self._renderers[key] = Renderer(width, height)
+        ren = self._renderers[key]
+        if not ren.has_mesh(obj_id):
+            import trimesh
+
+            m = self.model(obj_id)
+            ren.add_mesh(obj_id, trimesh.Trimesh(vertices=m.pts, faces=m.faces, process=False), smooth=False)
+        return ren
+
+    def image_errors(self, job: ImageJob) -> list[dict]:
+        """One dict per (estimate, GT of the same object) of the image.
+
+        Keys: scene_id, im_id, obj_id, est_id, gt_id, score, mssd (mm; inf when the
+        centres are more than a diameter apart, as in the toolkit), mspd (px) and
+        ``vsd`` ((T,) float64 per tau, or None when VSD is not computed).
+        """
+        p = self.params
+        K = np.asarray(job.K, dtype=np.float64)
+        depth_test = None
+        gt_depth: dict[int, np.ndarray] = {}
+        rows = []
+        for est_id, obj_id, score, R_e, t_e in job.ests:
+            gts = [g for g in job.gts if g[1] == obj_id]
+            if not gts:
+                continue
+            m = self.model(obj_id)
+            est_depth = None
+            for gt_id, _, R_g, t_g in gts:
+                if np.linalg.norm(t_e - t_g) < m.diameter:
+                    e_mssd = mssd(R_e, t_e, R_g, t_g, m.pts, m.sym_R, m.sym_t)
+                else:
+                    e_mssd = float("inf")
+                e_mspd = mspd(R_e, t_e, R_g, t_g, K, m.pts, m.sym_R, m.sym_t)
+                e_vsd = None
+                if p.compute_vsd:
+                    if not sphere_projections_overlap(0.5 * m.diameter, t_e, t_g):
+                        e_vsd = np.ones(len(self._taus))
+                    else:
+                        ren = self._renderer(job.width, job.height, obj_id)
+                        if depth_test is None:
+                            depth_test = self.dataset.load_depth(job.scene_id, job.im_id)
+                            if depth_test.shape != (job.height, job.width):
+                                raise ValueError(
+                                    f"{self.dataset.depth_path(job.scene_id, job.im_id)}: depth is "
+                                    f"{depth_test.shape[1]}x{depth_test.shape[0]}, camera says {job.width}x{job.height}"
+                                )
+                        if est_depth is None:
+                            est_depth = ren.render_depth(obj_id, R_e, t_e, K)
+                        if gt_id not in gt_depth:
+                            gt_depth[gt_id] = ren.render_depth(obj_id, R_g, t_g, K)
+                        e_vsd = vsd(depth_test, est_depth, gt_depth[gt_id], K, p.vsd_delta, m.diameter, self._taus)
+                rows.append(
+                    {
+                        "scene_id": job.scene_id,
+                        "im_id": job.im_id,
+                        "obj_id": obj_id,
+                        "est_id": est_id,
+                        "gt_id": gt_id,
+                        "score": score,
+                        "mssd": e_mssd,
+                        "mspd": e_mspd,
+                        "vsd": e_vsd,
+                    }
+                )
+        return rows
+
+
+# ---------------------------------------------------------------------------- worker processes
+
+_WORKER: ErrorCalculator | None = None
+
+
+def init_worker(root: str, split: str, split_type: str | None, params: ErrorParams) -> None:
+    """Pool initializer: one dataset reader and calculator per worker process."""
+    global _WORKER
+    _WORKER = ErrorCalculator(BopDataset(Path(root), split, split_type), params)
+
+
+def run_jobs(jobs: list[ImageJob]) -> list[dict]:
+    """Pool task: the error rows of a chunk of images."""
+    assert _WORKER is not None, "init_worker was not called in this process"
+    rows = []
+    for job in jobs:
+        rows.extend(_WORKER.image_errors(job))
+    return rows

@@ -1,0 +1,273 @@
+"""The run plan: every stage's key, signature and artifact paths, known before running.
+
+Snakemake calls :func:`plan_run` at DAG time to compute its output paths; the stage
+entry points call it again to find their inputs and outputs, and check that they agree
+with the path Snakemake asked for. Nothing here touches the artifacts themselves.
+
+Item names: ``obj_000001`` (model side), ``scene_000001`` (scene side), ``all``
+(dataset-wide artifacts), ``dataset`` (the synthetic dataset itself).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+from pipeline import config as cfg
+from pipeline.store import MANIFEST_NAME, file_sha1, make_key, make_signature
+
+STAGES = (
+    "synth",
+    "render_templates",
+    "model_features",
+    "segment_prior",
+    "scene_features",
+    "register",
+    "refine",
+    "score",
+)
+
+
+def cache_root() -> Path:
+    """Root of the artifact store: ``$FREEZE_CACHE`` or ``<project>/cache``."""
+    return Path(os.environ.get("FREEZE_CACHE", cfg.PROJECT_ROOT / "cache")).resolve()
+
+
+def obj_item(obj_id: int) -> str:
+    return f"obj_{obj_id:06d}"
+
+
+def scene_item(scene_id: int) -> str:
+    return f"scene_{scene_id:06d}"
+
+
+def parse_item(item: str) -> tuple[str, int | None]:
+    """``obj_000005`` -> ("obj", 5); ``all`` -> ("all", None)."""
+    if "_" in item:
+        kind, num = item.split("_", 1)
+        return kind, int(num)
+    return item, None
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """Key and location of one stage's artifacts for one dataset."""
+
+    dataset: str
+    stage: str
+    key: str
+    signature: str
+    params: dict[str, Any]
+    upstream: dict[str, str]
+    code_version: int
+    dir: Path
+
+    def item_dir(self, item: str) -> Path:
+        return self.dir / item
+
+    def manifest(self, item: str) -> Path:
+        return self.dir / item / MANIFEST_NAME
+
+    def publish_kwargs(self, item: str) -> dict[str, Any]:
+        """Keyword arguments for :func:`pipeline.store.publish`."""
+        return dict(
+            stage=self.stage, item=item, key=self.key, signature=self.signature,
+            params=self.params, upstream=self.upstream, code_version=self.code_version,
+            dataset=self.dataset,
+        )
+
+
+@dataclass
+class DatasetPlan:
+    """All stage plans of one dataset under one run manifest."""
+
+    run: cfg.RunManifest
+    dataset: cfg.DatasetManifest
+    root: Path
+    obj_ids: list[int]
+    scene_ids: list[int]
+    stages: dict[str, StagePlan] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.dataset.name
+
+    def __getitem__(self, stage: str) -> StagePlan:
+        return self.stages[stage]
+
+    @property
+    def prior_path(self) -> Path:
+        base = self.root if self.dataset.kind == "synthetic" else Path(self.run.bop_root or ".")
+        return (base / self.dataset.prior).resolve()
+
+    @property
+    def results_csv_name(self) -> str:
+        return f"{self.run.method}_{self.name}-{self.dataset.split}.csv"
+
+    def bop(self):
+        """The dataset reader (:class:`pipeline.bop.BopDataset`)."""
+        from pipeline.bop import BopDataset
+
+        return BopDataset(self.root, split=self.dataset.split, split_type=self.dataset.split_type)
+
+
+def _encoder_manifest(name: str, kind: str) -> cfg.EncoderManifest:
+    man = cfg.load_encoder_manifest(name)
+    if man.kind != kind:
+        raise cfg.ManifestError(f"manifests/encoders/{name}.yaml: field 'kind' is '{man.kind}', but it is used as the {kind} encoder")
+    return man
+
+
+def _encoder_entry(name: str, kind: str) -> dict[str, Any]:
+    """Cache-relevant description of an encoder manifest: registry name, version, params."""
+    from pipeline.encoders.registry import EncoderSpec, build_encoder
+
+    man = _encoder_manifest(name, kind)
+    enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)))
+    return {
+        "manifest": name,
+        "encoder": man.encoder,
+        "version": enc.version,
+        "params": enc.cache_params(),
+        "signature": enc.signature(),
+    }
+
+
+def _synthetic_layout(ds: cfg.DatasetManifest) -> tuple[list[int], list[int]]:
+    from pipeline.synth import preset_layout
+
+    return preset_layout(ds.preset, ds.seed)
+
+
+def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str]:
+    from pipeline.bop import BopDataset
+
+    bop = BopDataset(root, split=ds.split, split_type=ds.split_type)
+    targets = bop.targets(root / ds.targets_file)
+    obj_ids = sorted({t.obj_id for t in targets})
+    scene_ids = sorted({t.scene_id for t in targets})
+    return obj_ids, scene_ids, bop.fingerprint()
+
+
+class RunPlan:
+    """Plans of every dataset of a run, built lazily per dataset."""
+
+    def __init__(self, run: cfg.RunManifest, cache: Path | None = None):
+        self.run = run
+        self.cache = Path(cache) if cache else cache_root()
+        self._plans: dict[str, DatasetPlan] = {}
+
+    @cached_property
+    def encoders(self) -> dict[str, dict[str, Any]]:
+        return {
+            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric"),
+            "visual": _encoder_entry(self.run.visual_encoder, "visual"),
+        }
+
+    def available(self, name: str) -> tuple[bool, str]:
+        """Whether a dataset can run here, and why not."""
+        ds = cfg.load_dataset_manifest(name)
+        if ds.kind == "synthetic":
+            return True, ""
+        if not self.run.bop_root:
+            return False, f"{name}: skipped, no bop_root set (--config bop_root=/path/to/bop)"
+        root = Path(self.run.bop_root) / (ds.folder or ds.name)
+        if not (root / ds.targets_file).exists():
+            return False, f"{name}: skipped, {root / ds.targets_file} not found"
+        return True, ""
+
+    def __getitem__(self, name: str) -> DatasetPlan:
+        if name not in self._plans:
+            self._plans[name] = self._plan_dataset(name)
+        return self._plans[name]
+
+    def _stage(self, ds: str, stage: str, readable: str, params: dict, upstream: dict[str, str]) -> StagePlan:
+        from stages import code_version
+
+        version = code_version(stage)
+        key = make_key(stage, version, params, upstream)
+        sig = make_signature(readable, key)
+        return StagePlan(ds, stage, key, sig, params, upstream, version, self.cache / ds / stage / sig)
+
+    def _plan_dataset(self, name: str) -> DatasetPlan:
+        ds = cfg.load_dataset_manifest(name)
+        run = self.run
+        sp = run.stages
+        stages: dict[str, StagePlan] = {}
+        if ds.kind == "synthetic":
+            synth = self._stage(name, "synth", f"{ds.preset}-seed{ds.seed}", {"preset": ds.preset, "seed": ds.seed}, {})
+            stages["synth"] = synth
+            root = synth.item_dir("dataset") / name
+            obj_ids, scene_ids = _synthetic_layout(ds)
+            dataset_key = synth.key
+            prior_key = synth.key
+        else:
+            if not run.bop_root:
+                raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
+            root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
+            obj_ids, scene_ids, dataset_key = _bop_layout(root, ds)
+            prior_file = Path(run.bop_root) / ds.prior
+            if not prior_file.exists():
+                raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
+            prior_key = file_sha1(prior_file)
+        ds_params = {"dataset": name, "split": ds.split, "split_type": ds.split_type}
+        enc = self.encoders
+        geo, vis = enc["geometric"], enc["visual"]
+        enc_params = {"geometric": {k: geo[k] for k in ("encoder", "version", "params")},
+                      "visual": {k: vis[k] for k in ("encoder", "version", "params")}}
+        enc_name = f"{geo['signature']}+{vis['signature']}"
+
+        rt = sp.render_templates
+        stages["render_templates"] = self._stage(
+            name, "render_templates", f"r{rt.n_views}-s{rt.image_size}",
+            {**ds_params, **rt.model_dump()}, {"dataset": dataset_key})
+        stages["model_features"] = self._stage(
+            name, "model_features", enc_name,
+            {**sp.model_features.model_dump(), "encoders": enc_params},
+            {"render_templates": stages["render_templates"].key})
+        stages["segment_prior"] = self._stage(
+            name, "segment_prior", f"{Path(ds.prior).stem.split('_')[0]}-top{sp.segment_prior.top_k}",
+            {**ds_params, "prior": ds.prior, "targets_file": ds.targets_file, **sp.segment_prior.model_dump()},
+            {"dataset": dataset_key, "prior": prior_key})
+        stages["scene_features"] = self._stage(
+            name, "scene_features", enc_name,
+            {**sp.scene_features.model_dump(), "encoders": enc_params},
+            {"segment_prior": stages["segment_prior"].key, "dataset": dataset_key})
+        stages["register"] = self._stage(
+            name, "register", f"{enc_name}-ransac", sp.register.model_dump(),
+            {"model_features": stages["model_features"].key, "scene_features": stages["scene_features"].key})
+        stages["refine"] = self._stage(
+            name, "refine", "icp", {"method": run.method, **sp.refine.model_dump()},
+            {"register": stages["register"].key})
+        stages["score"] = self._stage(
+            name, "score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump()},
+            {"refine": stages["refine"].key, "dataset": dataset_key})
+        return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_ids=scene_ids, stages=stages)
+
+    def to_json(self) -> str:
+        """The resolved run manifest as JSON (passed to stage jobs)."""
+        return json.dumps(self.run.model_dump(), sort_keys=True)
+
+
+def plan_from_json(run_json: str | None = None, overrides: dict[str, Any] | None = None) -> RunPlan:
+    """Rebuild the plan in a stage job from the JSON Snakemake passed (or from manifests)."""
+    if run_json:
+        run = cfg.RunManifest.model_validate(json.loads(run_json))
+    else:
+        run = cfg.load_run(overrides or {})
+    return RunPlan(run)
+
+
+def build_encoders(run: cfg.RunManifest):
+    """Instantiate the run's (geometric, visual) encoders from their manifests."""
+    from pipeline.encoders.registry import EncoderSpec, build_encoder
+
+    out = []
+    for name, kind in ((run.geometric_encoder, "geometric"), (run.visual_encoder, "visual")):
+        man = _encoder_manifest(name, kind)
+        out.append(build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params))))
+    return tuple(out)

@@ -1,0 +1,85 @@
+"""Template viewpoints and template rendering (stage render_templates).
+
+Templates are object-centred square renders: the camera sits on a sphere around the
+model's origin (the bounding-box centre for BOP models) and looks at it, with a focal
+length chosen so that the object's diameter spans ``fill`` of the image side.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.render.renderer import Light, Lighting, Renderer
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) float64 unit vectors spread evenly over the sphere (golden-angle spiral)."""
+    i = np.arange(n, dtype=float) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def look_at_rotation(cam_dir: np.ndarray) -> np.ndarray:
+    """R_m2c (3, 3) of an OpenCV camera placed along unit vector ``cam_dir`` from the
+    origin, looking at the origin, with the image "up" as close to model +z as possible."""
+    z = -np.asarray(cam_dir, dtype=float)
+    z /= np.linalg.norm(z)
+    up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(-up, z)  # image y points down, so "up" is -y
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    # Rows are the camera axes expressed in the model frame.
+    return np.stack([x, y, z], axis=0)
+
+
+@dataclass(frozen=True)
+class TemplateViews:
+    """Camera set of the templates: R_m2c (R, 3, 3), t_m2c (R, 3) mm, K (3, 3), size px."""
+
+    R: np.ndarray
+    t: np.ndarray
+    K: np.ndarray
+    size: int
+
+
+def template_views(n_views: int, diameter: float, size: int, fill: float = 0.85, distance_factor: float = 3.0) -> TemplateViews:
+    """Viewpoints on a Fibonacci sphere at ``distance_factor * diameter`` mm."""
+    dist = distance_factor * diameter
+    focal = fill * size * dist / diameter
+    K = np.array([[focal, 0.0, (size - 1) / 2.0], [0.0, focal, (size - 1) / 2.0], [0.0, 0.0, 1.0]])
+    dirs = fibonacci_sphere(n_views)
+    Rs = np.stack([look_at_rotation(d) for d in dirs])
+    ts = np.tile(np.array([0.0, 0.0, dist]), (n_views, 1))
+    return TemplateViews(R=Rs, t=ts, K=K, size=size)
+
+
+TEMPLATE_LIGHTING = Lighting(
+    ambient=(0.45, 0.45, 0.45),
+    lights=[Light(kind="directional", direction=(0.0, 0.0, 1.0), intensity=2.5)],
+)
+
+
+def render_templates(renderer: Renderer, key, views: TemplateViews) -> dict[str, np.ndarray]:
+    """Render every view of mesh ``key``.
+
+    Returns rgb (R, S, S, 3) uint8, depth (R, S, S) float32 mm, mask (R, S, S) bool,
+    K (R, 3, 3), R (R, 3, 3), t (R, 3) float64.
+    """
+    n = len(views.R)
+    rgb = np.zeros((n, views.size, views.size, 3), np.uint8)
+    depth = np.zeros((n, views.size, views.size), np.float32)
+    for i in range(n):
+        c, d = renderer.render([(key, views.R[i], views.t[i])], views.K, rgb=True, lighting=TEMPLATE_LIGHTING)
+        rgb[i], depth[i] = c, d
+    return {
+        "rgb": rgb,
+        "depth": depth,
+        "mask": depth > 0,
+        "K": np.tile(views.K, (n, 1, 1)),
+        "R": views.R.astype(np.float64),
+        "t": views.t.astype(np.float64),
+    }

@@ -1,0 +1,94 @@
+"""Localisation priors: select candidate masks for the targets of a dataset."""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+
+
+def rle_area(counts: Sequence[int]) -> int:
+    """Foreground pixels of an uncompressed RLE (odd runs are foreground)."""
+    return int(np.asarray(counts[1::2], dtype=np.int64).sum())
+
+
+def _uncompressed(rle: dict) -> dict:
+    """The same RLE with list counts (COCO compressed strings are expanded)."""
+    from pipeline.bop.detections import rle_counts_from_string
+
+    counts = rle["counts"]
+    if isinstance(counts, (str, bytes)):
+        counts = rle_counts_from_string(counts.decode("ascii") if isinstance(counts, bytes) else counts)
+    return {"counts": [int(c) for c in counts], "size": [int(v) for v in rle["size"]]}
+
+
+def select_candidates(
+    detections: Sequence[Any],
+    targets: Sequence[Any],
+    *,
+    top_k: int,
+    min_score: float = 0.0,
+    min_area: int = 1,
+    source: str = "detections",
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Keep the ``top_k`` most confident detections of each target (image, object).
+
+    detections: :class:`pipeline.bop.detections.Detection` items; targets: items with
+    scene_id, im_id, obj_id. Returns the candidate table (see stage segment_prior) and a
+    report of what was dropped and why, plus the targets left without any candidate.
+    """
+    target_keys = {(t.scene_id, t.im_id, t.obj_id) for t in targets}
+    dropped: Counter[str] = Counter()
+    per_target: dict[tuple[int, int, int], list[tuple[float, int, Any]]] = defaultdict(list)
+    image_time: dict[tuple[int, int], float] = {}
+    for idx, det in enumerate(detections):
+        key = (int(det.scene_id), int(det.image_id), int(det.category_id))
+        if det.time is not None and det.time >= 0:
+            image_time.setdefault(key[:2], float(det.time))
+        if key not in target_keys:
+            dropped["not_a_target"] += 1
+            continue
+        if det.score < min_score:
+            dropped["low_score"] += 1
+            continue
+        per_target[key].append((float(det.score), idx, det))
+    rows = []
+    for key in sorted(per_target):
+        ranked = sorted(per_target[key], key=lambda x: (-x[0], x[1]))
+        kept = 0
+        for score, idx, det in ranked:
+            if kept >= top_k:
+                dropped["beyond_top_k"] += 1
+                continue
+            rle = _uncompressed(det.segmentation)
+            area = rle_area(rle["counts"])
+            if area < min_area:
+                dropped["small_mask"] += 1
+                continue
+            h, w = (int(v) for v in rle["size"])
+            x, y, bw, bh = (float(v) for v in det.bbox)
+            rows.append({
+                "scene_id": key[0], "im_id": key[1], "obj_id": key[2], "score": score,
+                "bbox_x": x, "bbox_y": y, "bbox_w": bw, "bbox_h": bh,
+                "area": area, "height": h, "width": w,
+                "rle_counts": [int(c) for c in rle["counts"]],
+                "det_index": idx, "prior_time": image_time.get(key[:2], -1.0),
+            })
+            kept += 1
+    table = pd.DataFrame(rows, columns=[
+        "scene_id", "im_id", "obj_id", "score", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
+        "area", "height", "width", "rle_counts", "det_index", "prior_time"])
+    table.insert(0, "cand_id", np.arange(len(table), dtype=np.int64))
+    covered = {tuple(k) for k in table[["scene_id", "im_id", "obj_id"]].itertuples(index=False)}
+    missing = sorted(target_keys - covered)
+    report = {
+        "source": source,
+        "n_detections": len(detections),
+        "n_candidates": int(len(table)),
+        "n_targets": len(target_keys),
+        "dropped": dict(dropped),
+        "targets_without_candidate": [list(k) for k in missing],
+    }
+    return table, report

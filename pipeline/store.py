@@ -1,0 +1,285 @@
+"""The artifact store: cache keys, atomic publish, manifests, Zarr and Parquet helpers.
+
+Every artifact is a directory ``cache/<dataset>/<stage>/<signature>/<item>/`` holding its
+data files and a ``_manifest.json`` written last. The signature is a readable name plus
+a short hash of the stage's *key*; the key is the SHA-1 of the canonical JSON of
+(stage name, stage code version, parameters, upstream keys), so it is known before
+anything runs (Snakemake computes output paths from it at DAG time).
+
+Publishing is atomic: an item is written into a hidden temporary sibling directory and
+renamed into place only when complete, manifest included. A killed or failed stage
+leaves the previous artifact untouched and no half-written one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import resource
+import shutil
+import sys
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+MANIFEST_NAME = "_manifest.json"
+MANIFEST_SCHEMA = 1
+
+# Libraries whose versions are recorded in every manifest (they change outputs).
+_TRACKED_LIBRARIES = ("numpy", "scipy", "torch", "open3d-cpu", "open3d", "trimesh", "pyrender", "opencv-python-headless", "zarr", "pyarrow")
+
+
+def canonical_json(obj: Any) -> str:
+    """Deterministic JSON (sorted keys, no whitespace, floats via repr) used for hashing."""
+    return json.dumps(_plain(obj), sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _plain(obj: Any) -> Any:
+    """Convert numpy scalars/arrays, tuples and Paths into plain JSON values."""
+    if isinstance(obj, Mapping):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def make_key(stage: str, code_version: int | str, params: Mapping[str, Any], upstream: Mapping[str, str]) -> str:
+    """Full SHA-1 hex key of a stage artifact."""
+    payload = {"stage": stage, "code_version": code_version, "params": params, "upstream": dict(upstream)}
+    return hashlib.sha1(canonical_json(payload).encode()).hexdigest()
+
+
+def make_signature(readable: str, key: str) -> str:
+    """Directory name: readable part plus 8 hex digits of the key, e.g. ``fpfh-ms+colortex-3f9a1c2e``."""
+    readable = readable.replace("_", "-").replace("/", "-")
+    return f"{readable}-{key[:8]}"
+
+
+def file_sha1(path: Path, chunk: int = 1 << 20) -> str:
+    """SHA-1 of a file's bytes."""
+    h = hashlib.sha1()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def library_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in _TRACKED_LIBRARIES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return out
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process and its finished children, in MiB."""
+    self_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    child_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(self_kb, child_kb) / 1024.0
+
+
+def read_manifest(path: Path) -> dict[str, Any]:
+    """Read an artifact's manifest; ``path`` is the item directory or the manifest file."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / MANIFEST_NAME
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no artifact manifest (the artifact is missing or was never completed)")
+    with open(path) as f:
+        return json.load(f)
+
+
+def _write_json_atomic(path: Path, content: Any) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(_plain(content), f, indent=2, sort_keys=True)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+@dataclass
+class ArtifactWriter:
+    """Collects files in a temporary directory; :func:`publish` moves them into place.
+
+    ``dir`` is the temporary directory to write into. Set ``summary`` entries (shapes,
+    counts, skipped items with reasons) to have them recorded in the manifest.
+    """
+
+    final_dir: Path
+    dir: Path
+    manifest: dict[str, Any]
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+@contextmanager
+def publish(
+    final_dir: Path,
+    *,
+    stage: str,
+    item: str,
+    key: str,
+    signature: str,
+    params: Mapping[str, Any],
+    upstream: Mapping[str, str],
+    code_version: int | str,
+    dataset: str,
+) -> Iterator[ArtifactWriter]:
+    """Write an artifact item atomically.
+
+    Usage::
+
+        with publish(item_dir, stage=..., ...) as w:
+            save_arrays(w.dir / "features.zarr", {...})
+            w.summary["n_points"] = 5000
+
+    On normal exit the manifest is written into the temporary directory and the
+    directory is renamed to ``final_dir`` (replacing an older copy, which is removed
+    only after the new one is in place). On an exception the temporary directory is
+    deleted and ``final_dir`` is left as it was.
+    """
+    final_dir = Path(final_dir)
+    final_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final_dir.parent / f".tmp-{final_dir.name}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    t0 = time.perf_counter()
+    manifest: dict[str, Any] = {
+        "schema": MANIFEST_SCHEMA,
+        "dataset": dataset,
+        "stage": stage,
+        "item": item,
+        "key": key,
+        "signature": signature,
+        "code_version": code_version,
+        "params": _plain(dict(params)),
+        "upstream": dict(upstream),
+    }
+    writer = ArtifactWriter(final_dir=final_dir, dir=tmp, manifest=manifest)
+    try:
+        yield writer
+        manifest["summary"] = _plain(writer.summary)
+        manifest["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        manifest["wall_time_s"] = round(time.perf_counter() - t0, 3)
+        manifest["peak_rss_mb"] = round(peak_rss_mb(), 1)
+        manifest["host"] = platform.node()
+        manifest["argv"] = sys.argv
+        manifest["libraries"] = library_versions()
+        _write_json_atomic(tmp / MANIFEST_NAME, manifest)
+        old = None
+        if final_dir.exists():
+            old = final_dir.parent / f".old-{final_dir.name}-{uuid.uuid4().hex[:8]}"
+            os.replace(final_dir, old)
+        os.replace(tmp, final_dir)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+# ----------------------------------------------------------------------------- zarr
+
+
+def save_arrays(
+    path: Path,
+    arrays: Mapping[str, np.ndarray],
+    *,
+    chunks: Mapping[str, tuple[int, ...]] | None = None,
+    attrs: Mapping[str, Any] | None = None,
+) -> None:
+    """Write arrays into a Zarr group (Blosc-zstd compressed).
+
+    By default each array is chunked along its first (item) axis one item at a time,
+    whole along the other axes; pass ``chunks`` to override per array.
+    """
+    import zarr
+    from zarr.codecs import BloscCodec
+
+    group = zarr.open_group(str(path), mode="w")
+    if attrs:
+        group.attrs.update(_plain(dict(attrs)))
+    compressor = BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
+    for name, arr in arrays.items():
+        arr = np.asarray(arr)
+        if chunks and name in chunks:
+            ch = chunks[name]
+        elif arr.ndim == 0:
+            ch = ()
+        else:
+            ch = (1,) + arr.shape[1:] if arr.ndim > 1 else (max(1, arr.shape[0]),)
+        ch = tuple(max(1, c) for c in ch)
+        z = group.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=ch, compressors=compressor)
+        if arr.size:
+            z[...] = arr
+
+
+def load_arrays(path: Path, names: list[str] | None = None) -> dict[str, np.ndarray]:
+    """Read arrays (all, or ``names``) of a Zarr group into memory."""
+    import zarr
+
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{path}: Zarr store not found")
+    group = zarr.open_group(str(path), mode="r")
+    keys = names if names is not None else sorted(group.array_keys())
+    return {k: np.asarray(group[k][...]) for k in keys}
+
+
+def load_attrs(path: Path) -> dict[str, Any]:
+    import zarr
+
+    return dict(zarr.open_group(str(path), mode="r").attrs)
+
+
+# -------------------------------------------------------------------------- parquet
+
+
+def write_table(df, path: Path, *, metadata: Mapping[str, Any] | None = None) -> None:
+    """Write a pandas DataFrame to Parquet, with ``metadata`` in the schema (as JSON)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    if metadata:
+        meta = dict(table.schema.metadata or {})
+        meta[b"freeze"] = canonical_json(metadata).encode()
+        table = table.replace_schema_metadata(meta)
+    pq.write_table(table, str(path))
+
+
+def read_table(path: Path):
+    """Read a Parquet file written by :func:`write_table` into a DataFrame."""
+    import pyarrow.parquet as pq
+
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{path}: Parquet table not found")
+    return pq.read_table(str(path)).to_pandas()
+
+
+def table_metadata(path: Path) -> dict[str, Any]:
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(str(path)).metadata or {}
+    raw = meta.get(b"freeze")
+    return json.loads(raw) if raw else {}
+
+
+def item_seed(key: str, item: str, seed: int = 0) -> int:
+    """A 32-bit seed derived from an artifact key, the item name and a user seed, so that
+    sampling is reproducible per artifact and differs between items."""
+    return int(hashlib.sha1(f"{key}/{item}/{seed}".encode()).hexdigest()[:8], 16)

@@ -1,0 +1,14 @@
+rule model_features:
+    """Geometric and lifted visual features of one object's sampled points."""
+    input:
+        lambda wc: str(PLAN[wc.ds]["render_templates"].manifest(f"obj_{wc.obj}")),
+    output:
+        f"{CACHE}/{{ds}}/model_features/{{sig}}/obj_{{obj}}/_manifest.json",
+    params:
+        item=lambda wc: f"obj_{wc.obj}",
+        run=RUN_JSON,
+        check=lambda wc: stage_plan(wc, "model_features").signature,
+    log:
+        f"{LOGS}/{{ds}}/model_features/{{sig}}/obj_{{obj}}.log",
+    shell:
+        stage_shell("model_features")

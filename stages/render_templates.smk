@@ -1,0 +1,13 @@
+rule render_templates:
+    """R template views of one object."""
+    input:
+        dataset_input,
+    output:
+        f"{CACHE}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}/_manifest.json",
+    params:
+        item=lambda wc: f"obj_{wc.obj}",
+        run=RUN_JSON,
+    log:
+        f"{LOGS}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}.log",
+    shell:
+        stage_shell("render_templates")

@@ -1,0 +1,15 @@
+rule scene_features:
+    """Lifted points and features of every candidate of one scene."""
+    input:
+        dataset_input,
+        lambda wc: str(PLAN[wc.ds]["segment_prior"].manifest("all")),
+    output:
+        f"{CACHE}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}/_manifest.json",
+    params:
+        item=lambda wc: f"scene_{wc.scene}",
+        run=RUN_JSON,
+        check=lambda wc: stage_plan(wc, "scene_features").signature,
+    log:
+        f"{LOGS}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}.log",
+    shell:
+        stage_shell("scene_features")

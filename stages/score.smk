@@ -1,0 +1,14 @@
+rule score:
+    """BOP19 VSD, MSSD, MSPD and AR of the dataset's results CSV."""
+    input:
+        lambda wc: str(PLAN[wc.ds]["refine"].manifest("all")),
+    output:
+        f"{CACHE}/{{ds}}/score/{{sig}}/all/_manifest.json",
+    params:
+        item="all",
+        run=RUN_JSON,
+        check=lambda wc: stage_plan(wc, "score").signature,
+    log:
+        f"{LOGS}/{{ds}}/score/{{sig}}.log",
+    shell:
+        stage_shell("score")

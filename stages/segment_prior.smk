@@ -1,0 +1,13 @@
+rule segment_prior:
+    """Candidate masks from the localisation prior (top-k per image and object)."""
+    input:
+        dataset_input,
+    output:
+        f"{CACHE}/{{ds}}/segment_prior/{{sig}}/all/_manifest.json",
+    params:
+        item="all",
+        run=RUN_JSON,
+    log:
+        f"{LOGS}/{{ds}}/segment_prior/{{sig}}.log",
+    shell:
+        stage_shell("segment_prior")

@@ -1,0 +1,11 @@
+rule synth:
+    """Generate a synthetic BOP dataset (synthetic datasets only)."""
+    output:
+        f"{CACHE}/{{ds}}/synth/{{sig}}/dataset/_manifest.json",
+    params:
+        item="dataset",
+        run=RUN_JSON,
+    log:
+        f"{LOGS}/{{ds}}/synth/{{sig}}.log",
+    shell:
+        stage_shell("synth")

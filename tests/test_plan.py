@@ -1,0 +1,71 @@
+"""Cache-key rules: which stages get new keys when a manifest value changes."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline import config as cfg
+from pipeline.plan import RunPlan
+from pipeline.store import make_key
+
+MODEL_SIDE = ("synth", "render_templates", "segment_prior")
+ENCODER_DEPENDENT = ("model_features", "scene_features", "register", "refine", "score")
+
+
+def _keys(**overrides) -> dict[str, str]:
+    run = cfg.load_run({"datasets": "synthtiny", **overrides})
+    return {name: sp.key for name, sp in RunPlan(run)["synthtiny"].stages.items()}
+
+
+def test_plan_is_deterministic():
+    assert _keys() == _keys()
+
+
+def test_visual_encoder_swap_changes_exactly_the_dependent_stages():
+    base, swapped = _keys(), _keys(visual_encoder="colortex-coarse")
+    for stage in MODEL_SIDE:
+        assert base[stage] == swapped[stage], stage
+    for stage in ENCODER_DEPENDENT:
+        assert base[stage] != swapped[stage], stage
+
+
+def test_stage_parameter_change_propagates_downstream_only():
+    run = cfg.load_run({"datasets": "synthtiny"})
+    data = run.model_dump()
+    data["stages"]["scene_features"]["n_points"] = 500
+    changed = RunPlan(cfg.RunManifest.model_validate(data))["synthtiny"]
+    base = RunPlan(run)["synthtiny"]
+    for stage in ("synth", "render_templates", "model_features", "segment_prior"):
+        assert changed[stage].key == base[stage].key, stage
+    for stage in ("scene_features", "register", "refine", "score"):
+        assert changed[stage].key != base[stage].key, stage
+
+
+def test_signature_is_readable_and_keyed():
+    plan = RunPlan(cfg.load_run({"datasets": "synthtiny"}))["synthtiny"]
+    mf = plan["model_features"]
+    assert mf.signature.startswith("fpfh") and "+colortex" in mf.signature
+    assert mf.signature.endswith(mf.key[:8])
+    assert "_" not in mf.signature
+
+
+def test_key_covers_params_code_version_and_upstream():
+    k = make_key("s", 1, {"a": 1, "b": [2, 3]}, {"u": "x"})
+    assert k != make_key("s", 2, {"a": 1, "b": [2, 3]}, {"u": "x"})
+    assert k != make_key("s", 1, {"a": 2, "b": [2, 3]}, {"u": "x"})
+    assert k != make_key("s", 1, {"a": 1, "b": [2, 3]}, {"u": "y"})
+    assert k == make_key("s", 1, {"b": [2, 3], "a": 1}, {"u": "x"})  # key order is irrelevant
+
+
+def test_bad_manifest_names_file_and_field(tmp_path):
+    (tmp_path / "runs").mkdir()
+    bad = tmp_path / "runs" / "bad.yaml"
+    bad.write_text("datasets: [synthtiny]\nstages: {scene_features: {n_points: -3}}\n")
+    with pytest.raises(cfg.ManifestError) as e:
+        cfg.load_run({"run": str(bad)})
+    assert "bad.yaml" in str(e.value) and "stages.scene_features.n_points" in str(e.value)
+
+
+def test_unknown_encoder_lists_known_ones():
+    with pytest.raises(cfg.ManifestError, match="known: .*colortex"):
+        RunPlan(cfg.load_run({"datasets": "synthtiny", "visual_encoder": "nosuch"}))["synthtiny"]
