@@ -98,7 +98,7 @@ def test_detection_bbox_from_mask():
     mask = np.zeros((10, 10), bool)
     mask[2:5, 3:9] = True
     d = detection_from_mask(1, 2, 3, 0.5, mask)
-    assert d.bbox == (3.0, 2.0, 6.0, 3.0)
+    assert d.bbox == (3.0, 2.0, 5.0, 2.0)  # BOP toolkit convention: max - min
     assert d.obj_id == 3 and d.time == -1.0
 
 

@@ -179,11 +179,15 @@ class Detection:
 def detection_from_mask(
     scene_id: int, image_id: int, obj_id: int, score: float, mask: np.ndarray, time: float = -1.0
 ) -> Detection:
-    """A ``Detection`` whose bbox (tight, in px) and RLE come from a (H, W) bool mask."""
+    """A ``Detection`` whose bbox and RLE come from a (H, W) bool mask.
+
+    The bbox follows the BOP toolkit and CNOS: (x_min, y_min, x_max - x_min,
+    y_max - y_min) over the foreground pixel indices, so a single pixel has w = h = 0.
+    """
     mask = np.asarray(mask, bool)
     ys, xs = np.nonzero(mask)
     if len(xs):
-        bbox = (float(xs.min()), float(ys.min()), float(xs.max() - xs.min() + 1), float(ys.max() - ys.min() + 1))
+        bbox = (float(xs.min()), float(ys.min()), float(xs.max() - xs.min()), float(ys.max() - ys.min()))
     else:
         bbox = (0.0, 0.0, 0.0, 0.0)
     return Detection(int(scene_id), int(image_id), int(obj_id), float(score), bbox, rle_encode(mask), float(time))

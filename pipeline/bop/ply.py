@@ -272,7 +272,10 @@ def _read_ascii_element(path: Path, tokens: list[str], start: int, el: _Element)
         if p.is_list:
             if pos >= len(tokens):
                 raise BopFormatError(f"{path}: element '{el.name}': file truncated")
-            n = int(float(tokens[pos]))
+            try:
+                n = int(float(tokens[pos]))
+            except ValueError:
+                raise BopFormatError(f"{path}: element '{el.name}': list length '{tokens[pos]}' is not a number") from None
             widths.append(1 + n)
             pos += 1 + n
         else:
