@@ -8,15 +8,17 @@ worker processes; each process holds one :class:`ErrorCalculator` that loads the
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.bop import BopDataset, read_ply
+from pipeline.bop import BopDataset, ModelInfo, load_json, read_ply
+from pipeline.bop.dataset import parse_models_info
 
-from .pose_errors import mspd, mssd
+from .pose_errors import mspd, mssd, probe_indices
 from .symmetry import DEFAULT_MAX_SYM_DISC_STEP, model_symmetries
 from .vsd import VSD_TAUS, sphere_projections_overlap, vsd
 
@@ -29,6 +31,11 @@ class ErrorParams:
     vsd_taus: tuple[float, ...] = tuple(VSD_TAUS.tolist())
     max_sym_disc_step: float = DEFAULT_MAX_SYM_DISC_STEP
     compute_vsd: bool = True
+    #: Where, in OpenCV pixel coordinates relative to the pixel centre, the VSD renders
+    #: sample each pixel. The BOP toolkit's renderers (vispy, cpp) rasterise with
+    #: OpenGL's pixel centres at OpenCV coordinates (x + 0.5, y + 0.5); sampling there
+    #: too reproduces its silhouettes and hence its VSD values.
+    render_offset: float = 0.5
 
 
 @dataclass
@@ -57,6 +64,7 @@ class _Model:
     sym_R: np.ndarray  # (S, 3, 3)
     sym_t: np.ndarray  # (S, 3) mm
     diameter: float
+    probes: np.ndarray  # vertex indices for the error lower bounds
 
 
 class ErrorCalculator:
@@ -66,6 +74,7 @@ class ErrorCalculator:
         self.dataset = dataset
         self.params = params
         self._models: dict[int, _Model] = {}
+        self._infos: dict[int, ModelInfo] | None = None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._taus = np.asarray(params.vsd_taus, dtype=np.float64)
 
@@ -76,13 +85,16 @@ class ErrorCalculator:
 
     def model(self, obj_id: int) -> _Model:
         if obj_id not in self._models:
-            infos = self.dataset.models_info()
+            if self._infos is None:
+                self._infos = eval_models_info(self.dataset)
+            infos = self._infos
             if obj_id not in infos:
-                raise KeyError(f"{self.dataset.models_info_path()}: no entry for obj_id {obj_id}")
-            ply = read_ply(self.dataset.model_path(obj_id, eval=True))
+                raise KeyError(f"{self.dataset.root}: models_info.json has no entry for obj_id {obj_id}")
+            ply = read_ply(eval_model_path(self.dataset, obj_id))
             sym_R, sym_t = model_symmetries(infos[obj_id], self.params.max_sym_disc_step)
+            pts = ply.vertices.astype(np.float64)
             self._models[obj_id] = _Model(
-                ply.vertices.astype(np.float64), ply.faces, sym_R, sym_t, float(infos[obj_id].diameter)
+                pts, ply.faces, sym_R, sym_t, float(infos[obj_id].diameter), probe_indices(pts)
             )
         return self._models[obj_id]
 
@@ -109,6 +121,9 @@ class ErrorCalculator:
         """
         p = self.params
         K = np.asarray(job.K, dtype=np.float64)
+        K_render = K.copy()
+        K_render[0, 2] -= p.render_offset
+        K_render[1, 2] -= p.render_offset
         depth_test = None
         gt_depth: dict[int, np.ndarray] = {}
         rows = []
@@ -120,10 +135,10 @@ class ErrorCalculator:
             est_depth = None
             for gt_id, _, R_g, t_g in gts:
                 if np.linalg.norm(t_e - t_g) < m.diameter:
-                    e_mssd = mssd(R_e, t_e, R_g, t_g, m.pts, m.sym_R, m.sym_t)
+                    e_mssd = mssd(R_e, t_e, R_g, t_g, m.pts, m.sym_R, m.sym_t, m.probes)
                 else:
                     e_mssd = float("inf")
-                e_mspd = mspd(R_e, t_e, R_g, t_g, K, m.pts, m.sym_R, m.sym_t)
+                e_mspd = mspd(R_e, t_e, R_g, t_g, K, m.pts, m.sym_R, m.sym_t, m.probes)
                 e_vsd = None
                 if p.compute_vsd:
                     if not sphere_projections_overlap(0.5 * m.diameter, t_e, t_g):
@@ -138,9 +153,9 @@ class ErrorCalculator:
                                     f"{depth_test.shape[1]}x{depth_test.shape[0]}, camera says {job.width}x{job.height}"
                                 )
                         if est_depth is None:
-                            est_depth = ren.render_depth(obj_id, R_e, t_e, K)
+                            est_depth = ren.render_depth(obj_id, R_e, t_e, K_render)
                         if gt_id not in gt_depth:
-                            gt_depth[gt_id] = ren.render_depth(obj_id, R_g, t_g, K)
+                            gt_depth[gt_id] = ren.render_depth(obj_id, R_g, t_g, K_render)
                         e_vsd = vsd(depth_test, est_depth, gt_depth[gt_id], K, p.vsd_delta, m.diameter, self._taus)
                 rows.append(
                     {
@@ -156,6 +171,29 @@ class ErrorCalculator:
                     }
                 )
         return rows
+
+
+def eval_models_info(dataset: BopDataset) -> dict[int, ModelInfo]:
+    """models_info of ``models_eval/`` (what the toolkit reads), else the dataset's default one."""
+    path = dataset.root / "models_eval" / "models_info.json"
+    if path.is_file():
+        return parse_models_info(path, load_json(path))
+    return dataset.models_info()
+
+
+def eval_model_path(dataset: BopDataset, obj_id: int) -> Path:
+    """The ``models_eval`` mesh of an object; the ``models/`` one, with a warning, if absent."""
+    path = dataset.model_path(obj_id, eval=True)
+    if path.is_file():
+        return path
+    fallback = dataset.model_path(obj_id, eval=False)
+    if not fallback.is_file():
+        raise FileNotFoundError(f"{path}: model of obj_id {obj_id} not found (nor {fallback})")
+    warnings.warn(
+        f"{path} not found: scoring obj_id {obj_id} on {fallback} (BOP scores use the models_eval meshes)",
+        stacklevel=3,
+    )
+    return fallback
 
 
 # ---------------------------------------------------------------------------- worker processes

@@ -1,0 +1,524 @@
+"""BOP 2019 evaluation of 6D localisation results: AR = mean(AR_VSD, AR_MSSD, AR_MSPD).
+
+Follows the BOP toolkit (``scripts/eval_bop19_pose.py`` with ``eval_calc_errors.py``
+and ``eval_calc_scores.py``):
+
+- Only estimates of (scene, image, object) listed in the targets count; of those, the
+  ``inst_count`` with the highest score (ties: earlier in the file first).
+- Each estimate is compared with every GT instance of its object in the image.
+- Per correctness setting, estimates are matched greedily (see ``matching``); the
+  recall is pooled over all valid GT instances of the target images.
+- AR_VSD averages 10 tau x 10 theta recalls, AR_MSSD 10 thresholds (0.05..0.5 of the
+  diameter), AR_MSPD 10 thresholds (5..50 px at 640 px image width).
+
+Datasets without depth get no VSD: AR_VSD and AR are then None, never an average
+over the remaining metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import multiprocessing
+import os
+import tempfile
+import time as _time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+
+from pipeline.bop import BopDataset, Target, read_results_csv
+from pipeline.bop.jsonio import atomic_write_text
+
+from .calc_errors import ErrorCalculator, ErrorParams, ImageJob, eval_models_info, init_worker, run_jobs
+from .matching import greedy_match, valid_gt_mask
+from .symmetry import DEFAULT_MAX_SYM_DISC_STEP
+from .vsd import VSD_TAUS
+
+log = logging.getLogger(__name__)
+
+#: Correctness thresholds of BOP19 (built like the toolkit's, for identical floats).
+VSD_THETAS: np.ndarray = np.arange(0.05, 0.51, 0.05)
+MSSD_THRESHOLDS: np.ndarray = np.arange(0.05, 0.51, 0.05)  # x object diameter
+MSPD_THRESHOLDS: np.ndarray = np.arange(5, 51, 5).astype(np.float64)  # px at 640 px width
+
+#: VSD misalignment tolerance delta (mm) per BOP dataset; 15 mm for any other.
+VSD_DELTAS = {"itodd": 5.0}
+
+
+def bop_vsd_delta(dataset_name: str) -> float:
+    """The BOP19 VSD delta in mm for a dataset name (5 for ITODD, else 15)."""
+    return VSD_DELTAS.get(dataset_name, 15.0)
+
+
+def vsd_column(tau: float) -> str:
+    """Name of the errors column holding VSD at tolerance ``tau``, e.g. ``vsd_tau_0.05``."""
+    return f"vsd_tau_{tau:.2f}"
+
+
+@dataclass
+class Scores:
+    """Result of :func:`evaluate`.
+
+    summary: AR, AR_VSD, AR_MSSD, AR_MSPD (None when not computable), n_targets (valid
+      GT instances to find), n_estimates (rows of the results), n_ignored (estimates
+      of (scene, image, object) not in the targets), n_evaluated, n_beyond_inst_count,
+      mean_time_per_image (s, -1 if not given), vsd_delta, images_without_depth, notes.
+    errors: one row per (evaluated estimate, GT instance of its object): scene_id,
+      im_id, obj_id, est_id, gt_id, score, gt_visib_fract, gt_valid, mssd (mm), mspd
+      (px), vsd_tau_0.05 .. vsd_tau_0.50 (NaN without VSD).
+    per_object: obj_id, n_targets, AR_VSD, AR_MSSD, AR_MSPD, AR per object.
+    recalls: "vsd" (n_tau, n_theta), "mssd" (10,), "mspd" (10,) recall arrays.
+    """
+
+    summary: dict[str, Any]
+    errors: pd.DataFrame
+    per_object: pd.DataFrame
+    recalls: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready content of ``scores.json``."""
+        return {
+            "summary": self.summary,
+            "recalls": {k: np.asarray(v).tolist() for k, v in self.recalls.items()},
+            "per_object": [
+                {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()}
+                for r in self.per_object.to_dict(orient="records")
+            ],
+        }
+
+
+# ---------------------------------------------------------------------------- inputs
+
+
+def _targets_list(dataset: BopDataset, targets: Sequence[Target] | Path | str | None) -> list[Target]:
+    if targets is None or isinstance(targets, (str, Path)):
+        return dataset.targets(targets)
+    return list(targets)
+
+
+def _check_results(results: pd.DataFrame) -> pd.DataFrame:
+    missing = [c for c in ("scene_id", "im_id", "obj_id", "score", "R", "t") if c not in results.columns]
+    if missing:
+        raise ValueError(f"results: missing column(s) {missing}; expected scene_id, im_id, obj_id, score, R, t, time")
+    df = results.reset_index(drop=True).copy()
+    if "time" not in df.columns:
+        df["time"] = -1.0
+    for c in ("scene_id", "im_id", "obj_id"):
+        df[c] = df[c].astype(np.int64)
+    df["score"] = df["score"].astype(np.float64)
+    df["time"] = df["time"].astype(np.float64)
+    for name, n in (("R", 9), ("t", 3)):
+        for i, v in enumerate(df[name]):
+            a = np.asarray(v, dtype=np.float64)
+            if a.size != n or not np.all(np.isfinite(a)):
+                raise ValueError(f"results: row {i}, field '{name}': expected {n} finite values, got {v!r}")
+    if not np.all(np.isfinite(df["score"])):
+        raise ValueError(f"results: row {int(np.flatnonzero(~np.isfinite(df['score']))[0])}, field 'score': not finite")
+    return df
+
+
+def _mean_time_per_image(df: pd.DataFrame) -> float:
+    """Mean of the per-image times, -1 if any is negative; warns on disagreeing lines.
+
+    The toolkit raises when the lines of an image differ by more than 1 ms; here it is a
+    warning and the first line's time is used (the toolkit's choice when it passes).
+    """
+    if len(df) == 0:
+        return -1.0
+    if (df["time"] < 0).any():
+        return -1.0
+    g = df.groupby(["scene_id", "im_id"], sort=True)["time"]
+    first = g.first()
+    spread = g.max() - g.min()
+    bad = spread[spread > 0.001]
+    if len(bad):
+        shown = ", ".join(f"scene {s} image {i}" for s, i in bad.index[:5])
+        more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
+        warnings.warn(
+            f"results: the time differs between estimates of the same image for {shown}{more}; "
+            "BOP needs one time per image (using the first line's time)",
+            stacklevel=3,
+        )
+    return float(first.mean())
+
+
+def _select_estimates(df: pd.DataFrame, inst_counts: dict[tuple[int, int, int], int]) -> tuple[pd.DataFrame, int]:
+    """Estimates kept for scoring, with est_id; and the number outside the targets."""
+    keys = list(zip(df["scene_id"].tolist(), df["im_id"].tolist(), df["obj_id"].tolist()))
+    in_targets = np.array([k in inst_counts for k in keys], dtype=bool)
+    n_ignored = int((~in_targets).sum())
+    sel = df[in_targets].copy()
+    # est_id: position among the image's estimates of the object, in file order.
+    sel["est_id"] = sel.groupby(["scene_id", "im_id", "obj_id"], sort=False).cumcount()
+    sel = sel.sort_values(["scene_id", "im_id", "obj_id", "score", "est_id"], ascending=[True, True, True, False, True], kind="stable")
+    rank = sel.groupby(["scene_id", "im_id", "obj_id"], sort=False).cumcount().to_numpy()
+    limit = np.array([inst_counts[k] for k in zip(sel["scene_id"], sel["im_id"], sel["obj_id"])], dtype=np.int64)
+    return sel[rank < limit].reset_index(drop=True), n_ignored
+
+
+# ---------------------------------------------------------------------------- errors
+
+
+def _image_jobs(dataset: BopDataset, ests: pd.DataFrame) -> list[ImageJob]:
+    jobs = []
+    for (scene_id, im_id), grp in ests.groupby(["scene_id", "im_id"], sort=True):
+        scene_id, im_id = int(scene_id), int(im_id)
+        cams = dataset.scene_camera(scene_id)
+        gts_all = dataset.scene_gt(scene_id)
+        if im_id not in cams or im_id not in gts_all:
+            raise ValueError(
+                f"{dataset.scene_dir(scene_id)}: image {im_id} is a target but has no entry in "
+                "scene_camera.json / scene_gt.json"
+            )
+        cam = cams[im_id]
+        obj_ids = set(grp["obj_id"].tolist())
+        gts = [(g, p.obj_id, p.R, p.t) for g, p in enumerate(gts_all[im_id]) if p.obj_id in obj_ids]
+        ests_list = [
+            (int(r.est_id), int(r.obj_id), float(r.score), np.asarray(r.R, float).reshape(3, 3), np.asarray(r.t, float).reshape(3))
+            for r in grp.itertuples(index=False)
+        ]
+        jobs.append(ImageJob(scene_id, im_id, cam.K, int(cam.width), int(cam.height), gts, ests_list))
+    return jobs
+
+
+def _chunks(items: list, n: int) -> list[list]:
+    return [items[i : i + n] for i in range(0, len(items), n)]
+
+
+def _compute_errors(
+    dataset: BopDataset, jobs: list[ImageJob], params: ErrorParams, n_workers: int, progress: bool
+) -> list[dict]:
+    rows: list[dict] = []
+    bar = None
+    if progress and jobs:
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        bar.start()
+        task = bar.add_task("pose errors", total=len(jobs))
+    try:
+        if n_workers <= 1 or len(jobs) <= 1:
+            calc = ErrorCalculator(dataset, params)
+            try:
+                for job in jobs:
+                    rows.extend(calc.image_errors(job))
+                    if bar is not None:
+                        bar.advance(task)
+            finally:
+                calc.close()
+        else:
+            # Small chunks keep the workers busy to the end; a chunk amortises the IPC.
+            chunk = max(1, min(8, len(jobs) // (4 * n_workers)))
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(
+                n_workers,
+                initializer=init_worker,
+                initargs=(str(dataset.root), dataset.split, dataset.split_type, params),
+            ) as pool:
+                chunks = _chunks(jobs, chunk)
+                for part, done in zip(pool.imap(run_jobs, chunks), chunks):
+                    rows.extend(part)
+                    if bar is not None:
+                        bar.advance(task, len(done))
+    finally:
+        if bar is not None:
+            bar.stop()
+    return rows
+
+
+def _errors_frame(rows: list[dict], taus: np.ndarray) -> pd.DataFrame:
+    cols = ["scene_id", "im_id", "obj_id", "est_id", "gt_id", "score", "mssd", "mspd"]
+    vsd_cols = [vsd_column(t) for t in taus]
+    if not rows:
+        df = pd.DataFrame({c: pd.Series(dtype=np.int64 if c.endswith("id") else np.float64) for c in cols})
+        for c in vsd_cols:
+            df[c] = pd.Series(dtype=np.float64)
+        return df
+    df = pd.DataFrame([{c: r[c] for c in cols} for r in rows])
+    vsd = np.array([r["vsd"] if r["vsd"] is not None else np.full(len(taus), np.nan) for r in rows], dtype=np.float64)
+    for i, c in enumerate(vsd_cols):
+        df[c] = vsd[:, i]
+    df = df.astype({"scene_id": np.int64, "im_id": np.int64, "obj_id": np.int64, "est_id": np.int64, "gt_id": np.int64})
+    return df.sort_values(["scene_id", "im_id", "obj_id", "est_id", "gt_id"], kind="stable").reset_index(drop=True)
+
+
+# ---------------------------------------------------------------------------- matching and recall
+
+
+def _score(
+    dataset: BopDataset,
+    targets: list[Target],
+    errors: pd.DataFrame,
+    taus: np.ndarray,
+    with_vsd: bool,
+    visib_gt_min: float,
+) -> tuple[dict[str, np.ndarray], pd.DataFrame, int, pd.DataFrame]:
+    """Recalls per setting, per-object table, target count, and errors with validity."""
+    n_tau = len(taus)
+    # Settings, in order: VSD (tau-major, theta-minor), MSSD, MSPD.
+    n_vsd = n_tau * len(VSD_THETAS) if with_vsd else 0
+    K = n_vsd + len(MSSD_THRESHOLDS) + len(MSPD_THRESHOLDS)
+    thresholds = np.concatenate([np.tile(VSD_THETAS, n_tau) if with_vsd else np.empty(0), MSSD_THRESHOLDS, MSPD_THRESHOLDS])
+    tau_index = np.repeat(np.arange(n_tau), len(VSD_THETAS))
+    vsd_cols = [vsd_column(t) for t in taus]
+    infos = eval_models_info(dataset)
+
+    by_image: dict[tuple[int, int], dict[int, int]] = {}
+    for t in targets:
+        by_image.setdefault((t.scene_id, t.im_id), {})[t.obj_id] = t.inst_count
+    err_groups = {k: g for k, g in errors.groupby(["scene_id", "im_id", "obj_id"], sort=False)} if len(errors) else {}
+
+    tps = np.zeros(K, dtype=np.int64)
+    obj_tars: dict[int, int] = {}
+    obj_tps: dict[int, np.ndarray] = {}
+    n_targets = 0
+    validity = []
+    for (scene_id, im_id), inst_counts in sorted(by_image.items()):
+        gts = dataset.scene_gt(scene_id).get(im_id)
+        gt_infos = dataset.scene_gt_info(scene_id).get(im_id)
+        if gts is None or gt_infos is None or len(gt_infos) != len(gts):
+            raise ValueError(
+                f"{dataset.scene_dir(scene_id)}: target image {im_id} lacks consistent entries in "
+                "scene_gt.json and scene_gt_info.json"
+            )
+        gt_obj = [g.obj_id for g in gts]
+        fracts = [i.visib_fract for i in gt_infos]
+        valid = valid_gt_mask(gt_obj, fracts, inst_counts, visib_gt_min)
+        for g in np.flatnonzero(valid):
+            o = gt_obj[g]
+            obj_tars[o] = obj_tars.get(o, 0) + 1
+            obj_tps.setdefault(o, np.zeros(K, dtype=np.int64))
+            n_targets += 1
+        for g, (o, f, v) in enumerate(zip(gt_obj, fracts, valid)):
+            validity.append((scene_id, im_id, g, float(f), bool(v)))
+        for obj_id in inst_counts:
+            grp = err_groups.get((scene_id, im_id, obj_id))
+            if grp is None:
+                continue
+            gt_ids = [g for g, o in enumerate(gt_obj) if o == obj_id]
+            est_order = grp.drop_duplicates("est_id").sort_values(["score", "est_id"], ascending=[False, True], kind="stable")
+            est_ids = est_order["est_id"].to_numpy()
+            E, G = len(est_ids), len(gt_ids)
+            e_pos = {e: i for i, e in enumerate(est_ids)}
+            g_pos = {g: i for i, g in enumerate(gt_ids)}
+            err = np.full((E, G, K), np.inf)
+            ei = grp["est_id"].map(e_pos).to_numpy()
+            gi = grp["gt_id"].map(g_pos).to_numpy()
+            if with_vsd:
+                err[ei, gi, :n_vsd] = grp[vsd_cols].to_numpy()[:, tau_index]
+            diameter = float(infos[obj_id].diameter)
+            width = dataset.scene_camera(scene_id)[im_id].width
+            k0 = n_vsd
+            err[ei, gi, k0 : k0 + len(MSSD_THRESHOLDS)] = (grp["mssd"].to_numpy() / diameter)[:, None]
+            k0 += len(MSSD_THRESHOLDS)
+            err[ei, gi, k0:] = ((640.0 / width) * grp["mspd"].to_numpy())[:, None]
+            matched = greedy_match(err, valid[gt_ids], thresholds)  # (K, E)
+            hits = (matched >= 0).sum(1)
+            tps += hits
+            obj_tps.setdefault(obj_id, np.zeros(K, dtype=np.int64))
+            obj_tps[obj_id] += hits
+
+    def split(counts: np.ndarray) -> dict[str, np.ndarray]:
+        out = {}
+        if with_vsd:
+            out["vsd"] = counts[:n_vsd].reshape(n_tau, len(VSD_THETAS))
+        out["mssd"] = counts[n_vsd : n_vsd + len(MSSD_THRESHOLDS)]
+        out["mspd"] = counts[n_vsd + len(MSSD_THRESHOLDS) :]
+        return out
+
+    recalls = {k: (v / n_targets if n_targets else np.zeros(v.shape)) for k, v in split(tps.astype(np.float64)).items()}
+    per_obj_rows = []
+    for obj_id in sorted(obj_tars):
+        r = {k: v / obj_tars[obj_id] for k, v in split(obj_tps[obj_id].astype(np.float64)).items()}
+        row = {
+            "obj_id": obj_id,
+            "n_targets": obj_tars[obj_id],
+            "AR_VSD": float(r["vsd"].mean()) if with_vsd else float("nan"),
+            "AR_MSSD": float(r["mssd"].mean()),
+            "AR_MSPD": float(r["mspd"].mean()),
+        }
+        row["AR"] = float(np.mean([row["AR_VSD"], row["AR_MSSD"], row["AR_MSPD"]])) if with_vsd else float("nan")
+        per_obj_rows.append(row)
+    per_object = pd.DataFrame(per_obj_rows, columns=["obj_id", "n_targets", "AR_VSD", "AR_MSSD", "AR_MSPD", "AR"])
+    valid_df = pd.DataFrame(validity, columns=["scene_id", "im_id", "gt_id", "gt_visib_fract", "gt_valid"])
+    return recalls, per_object, n_targets, valid_df
+
+
+# ---------------------------------------------------------------------------- entry points
+
+
+def evaluate(
+    results: pd.DataFrame,
+    dataset: BopDataset,
+    *,
+    targets: Sequence[Target] | Path | str | None = None,
+    vsd_delta: float = 15.0,
+    n_workers: int = 1,
+    progress: bool = True,
+    visib_gt_min: float = -1.0,
+    max_sym_disc_step: float = DEFAULT_MAX_SYM_DISC_STEP,
+) -> Scores:
+    """Score pose estimates with the BOP19 metrics.
+
+    results: DataFrame with scene_id, im_id, obj_id, score, R ((3, 3) arrays), t ((3,)
+      mm) and optionally time (s per image), as ``read_results_csv`` returns.
+    targets: Target list, or a targets file path; default the dataset's
+      ``test_targets_bop19.json``.
+    vsd_delta: VSD visibility tolerance in mm (BOP: 15, ITODD 5; see ``bop_vsd_delta``).
+    n_workers: processes for the error computation (spawned; each renders on its own).
+    visib_gt_min: which GT instances are valid targets (see ``matching.valid_gt_mask``;
+      the default -1 is the toolkit's BOP19 rule).
+    """
+    t_start = _time.perf_counter()
+    df = _check_results(results)
+    target_list = _targets_list(dataset, targets)
+    inst_counts = {(t.scene_id, t.im_id, t.obj_id): t.inst_count for t in target_list}
+    unknown = sorted({t.obj_id for t in target_list} - set(eval_models_info(dataset)))
+    if unknown:
+        raise ValueError(f"{dataset.root}: target object(s) {unknown} have no entry in models_info.json")
+
+    mean_time = _mean_time_per_image(df)
+    ests, n_ignored = _select_estimates(df, inst_counts)
+    n_in_targets = len(df) - n_ignored
+    if n_ignored:
+        log.warning("%d of %d estimates are for (scene, image, object) not in the targets and were ignored", n_ignored, len(df))
+
+    target_images = sorted({(t.scene_id, t.im_id) for t in target_list})
+    no_depth = [(s, i) for s, i in target_images if not dataset.has_depth(s, i)]
+    with_vsd = not no_depth
+    notes = []
+    if no_depth:
+        notes.append(
+            f"VSD not computed: {len(no_depth)} of {len(target_images)} target images have no depth image "
+            f"(first: scene {no_depth[0][0]} image {no_depth[0][1]}); AR_VSD and AR are None, "
+            "AR_MSSD and AR_MSPD are valid"
+        )
+        warnings.warn(notes[-1], stacklevel=2)
+
+    taus = VSD_TAUS
+    params = ErrorParams(
+        vsd_delta=float(vsd_delta), vsd_taus=tuple(taus.tolist()), max_sym_disc_step=max_sym_disc_step, compute_vsd=with_vsd
+    )
+    jobs = _image_jobs(dataset, ests)
+    t_err = _time.perf_counter()
+    rows = _compute_errors(dataset, jobs, params, n_workers, progress)
+    t_err = _time.perf_counter() - t_err
+    errors = _errors_frame(rows, taus)
+
+    recalls, per_object, n_targets, valid_df = _score(dataset, target_list, errors, taus, with_vsd, visib_gt_min)
+    errors = errors.merge(valid_df, on=["scene_id", "im_id", "gt_id"], how="left")
+    order = ["scene_id", "im_id", "obj_id", "est_id", "gt_id", "score", "gt_visib_fract", "gt_valid", "mssd", "mspd"]
+    errors = errors[order + [c for c in errors.columns if c not in order]]
+
+    ar_mssd = float(recalls["mssd"].mean())
+    ar_mspd = float(recalls["mspd"].mean())
+    ar_vsd = float(recalls["vsd"].mean()) if with_vsd else None
+    summary = {
+        "AR": float(np.mean([ar_vsd, ar_mssd, ar_mspd])) if with_vsd else None,
+        "AR_VSD": ar_vsd,
+        "AR_MSSD": ar_mssd,
+        "AR_MSPD": ar_mspd,
+        "n_targets": int(n_targets),
+        "n_estimates": int(len(df)),
+        "n_ignored": n_ignored,
+        "n_evaluated": int(len(ests)),
+        "n_beyond_inst_count": int(n_in_targets - len(ests)),
+        "mean_time_per_image": mean_time,
+        "vsd_delta": float(vsd_delta),
+        "visib_gt_min": float(visib_gt_min),
+        "images_without_depth": len(no_depth),
+        "n_target_images": len(target_images),
+        "eval_seconds": round(_time.perf_counter() - t_start, 3),
+        "error_seconds": round(t_err, 3),
+        "notes": notes,
+    }
+    return Scores(summary, errors, per_object, recalls)
+
+
+def _atomic_parquet(df: pd.DataFrame, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        df.to_parquet(tmp, index=False)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _resolve_targets(dataset_root: Path, targets_file: Path | str | None) -> Path | None:
+    if targets_file is None:
+        return None
+    p = Path(targets_file)
+    if not p.is_absolute() and not p.exists() and (dataset_root / p).exists():
+        return dataset_root / p
+    return p
+
+
+def score_results_file(
+    results_csv: Path | str,
+    dataset_root: Path | str,
+    split: str = "test",
+    targets_file: Path | str | None = None,
+    out_dir: Path | str | None = None,
+    n_workers: int = 1,
+    *,
+    split_type: str | None = None,
+    vsd_delta: float | None = None,
+    progress: bool = False,
+) -> Scores:
+    """Score a BOP results CSV against a dataset folder; optionally write the outputs.
+
+    targets_file: default ``<dataset_root>/test_targets_bop19.json``; a relative path
+    not found from the working directory is looked up in ``dataset_root``.
+    vsd_delta: default the BOP value for the dataset (folder) name.
+    out_dir: when given, ``errors.parquet`` and ``scores.json`` are written there,
+    each atomically.
+    """
+    dataset_root = Path(dataset_root)
+    dataset = BopDataset(dataset_root, split, split_type)
+    results = read_results_csv(results_csv)
+    delta = bop_vsd_delta(dataset.name) if vsd_delta is None else float(vsd_delta)
+    scores = evaluate(
+        results,
+        dataset,
+        targets=_resolve_targets(dataset_root, targets_file),
+        vsd_delta=delta,
+        n_workers=n_workers,
+        progress=progress,
+    )
+    scores.summary["results_file"] = str(results_csv)
+    scores.summary["dataset"] = str(dataset_root)
+    scores.summary["split"] = split
+    if out_dir is not None:
+        out = Path(out_dir)
+        _atomic_parquet(scores.errors, out / "errors.parquet")
+        atomic_write_text(out / "scores.json", json.dumps(scores.to_json(), indent=1) + "\n")
+    return scores
+
+
+def load_scores(out_dir: Path | str) -> tuple[dict[str, Any], pd.DataFrame]:
+    """Read back ``scores.json`` (as a dict) and ``errors.parquet`` written by :func:`score_results_file`."""
+    out = Path(out_dir)
+    return json.loads((out / "scores.json").read_text()), pd.read_parquet(out / "errors.parquet")
+
+
+__all__ = [
+    "MSPD_THRESHOLDS",
+    "MSSD_THRESHOLDS",
+    "VSD_THETAS",
+    "Scores",
+    "bop_vsd_delta",
+    "evaluate",
+    "load_scores",
+    "score_results_file",
+    "vsd_column",
+]

@@ -1,0 +1,158 @@
+"""The BOP19 scorer against the reference BOP toolkit on the tiny synthetic dataset.
+
+tests/data/tinybop holds a 3-image BOP dataset (stored as "icbin"), ten estimate files
+and the toolkit's scores for each (see its SOURCE.txt). Every variant must agree on
+AR and each component within 0.001, MSSD/MSPD per estimate within 1e-3 relative and
+VSD within 0.005.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.bop import BopDataset, read_estimates_json, write_results_csv
+from pipeline.metrics import evaluate, load_scores, score_results_file, vsd_column
+
+DATA = Path(__file__).parent / "data" / "tinybop"
+REF = json.loads((DATA / "reference_scores_tinybop.json").read_text())["variants"]
+VARIANTS = sorted(REF)
+
+
+@pytest.fixture(scope="module")
+def dataset() -> BopDataset:
+    return BopDataset(DATA / "icbin")
+
+
+def _estimates(variant: str) -> pd.DataFrame:
+    return read_estimates_json(DATA / "estimates" / f"{variant}_icbin-test.json")
+
+
+def _error_row(errors: pd.DataFrame, im_id: int, obj_id: int, gt_id: int, score: float) -> pd.Series:
+    sel = errors[
+        (errors.im_id == im_id) & (errors.obj_id == obj_id) & (errors.gt_id == gt_id) & np.isclose(errors.score, score)
+    ]
+    assert len(sel) == 1, f"expected one error row for im {im_id} obj {obj_id} gt {gt_id} score {score}"
+    return sel.iloc[0]
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_matches_reference_toolkit(dataset: BopDataset, variant: str) -> None:
+    ref = REF[variant]
+    scores = evaluate(_estimates(variant), dataset, progress=False)
+    s, b = scores.summary, ref["bop19"]
+    assert s["AR"] == pytest.approx(b["bop19_average_recall"], abs=1e-3)
+    assert s["AR_VSD"] == pytest.approx(b["bop19_average_recall_vsd"], abs=1e-3)
+    assert s["AR_MSSD"] == pytest.approx(b["bop19_average_recall_mssd"], abs=1e-3)
+    assert s["AR_MSPD"] == pytest.approx(b["bop19_average_recall_mspd"], abs=1e-3)
+    assert s["mean_time_per_image"] == pytest.approx(b["bop19_average_time_per_image"])
+    assert s["n_targets"] == 6
+
+    n_checked = 0
+    for key, entries in ref["per_estimate_errors"].items():
+        for e in entries:
+            for gt_id, (value,) in e["errors_vs_gt_id"].items():
+                row = _error_row(scores.errors, e["im_id"], e["obj_id"], int(gt_id), e["score"])
+                if key.startswith("error=mssd") or key.startswith("error=mspd"):
+                    ours = row["mssd" if "mssd" in key else "mspd"]
+                    # The reference is rounded to 4 decimals: allow half a unit on ~0 values.
+                    assert abs(ours - value) <= max(1e-3 * abs(value), 5e-5), (key, e, ours)
+                else:
+                    tau = float(key.split("tau=")[1])
+                    assert abs(row[vsd_column(tau)] - value) <= 0.005, (key, e, row[vsd_column(tau)])
+                n_checked += 1
+    # Only the top inst_count (= 1) estimate per target is scored, as in the toolkit.
+    assert len(scores.errors) == len(ref["per_estimate_errors"]["error=mssd_ntop=-1"])
+    assert n_checked == 5 * len(scores.errors)
+
+
+def test_translation_gives_exact_mssd(dataset: BopDataset) -> None:
+    """tx20 / tz50 move every estimate by a pure translation: MSSD is exactly that length."""
+    for variant, d in (("tx20", 20.0), ("tz50", 50.0)):
+        errors = evaluate(_estimates(variant), dataset, progress=False).errors
+        np.testing.assert_allclose(errors["mssd"], d, rtol=0, atol=1e-9)
+
+
+def test_symmetric_variants_score_one(dataset: BopDataset) -> None:
+    """Rotating the cylinder by a declared symmetry (discrete flip or continuous turn) is exact."""
+    for variant in ("gt", "symflip", "symrotz"):
+        s = evaluate(_estimates(variant), dataset, progress=False)
+        assert s.summary["AR"] == 1.0
+        assert (s.per_object["AR"] == 1.0).all()
+    flip = evaluate(_estimates("symflip"), dataset, progress=False).errors
+    assert flip["mssd"].max() < 1e-9 and flip["mspd"].max() < 1e-6
+
+
+def test_score_results_file_writes_outputs_and_uses_workers(tmp_path: Path, dataset: BopDataset) -> None:
+    csv = tmp_path / "rx20_icbin-test.csv"
+    write_results_csv(csv, _estimates("rx20"))
+    out = tmp_path / "scores"
+    scores = score_results_file(csv, DATA / "icbin", out_dir=out, n_workers=2)
+    assert scores.summary["AR"] == pytest.approx(REF["rx20"]["bop19"]["bop19_average_recall"], abs=1e-3)
+    summary, errors = load_scores(out)
+    assert summary["summary"]["AR"] == pytest.approx(scores.summary["AR"])
+    assert len(summary["recalls"]["vsd"]) == 10 and len(summary["recalls"]["mssd"]) == 10
+    assert [r["obj_id"] for r in summary["per_object"]] == [1, 2]
+    pd.testing.assert_frame_equal(errors, scores.errors)
+    assert not list(out.glob(".*.tmp"))
+    # The worker processes compute the same errors as the in-process path.
+    single = evaluate(_estimates("rx20"), dataset, progress=False)
+    pd.testing.assert_frame_equal(single.errors, scores.errors)
+
+
+def test_ignored_estimates_and_time_warning(dataset: BopDataset) -> None:
+    est = _estimates("gt")
+    stray = est.iloc[:2].copy()
+    stray["im_id"] = 7  # not a target image
+    est = pd.concat([est, stray], ignore_index=True)
+    est.loc[1, "time"] = 0.75  # image 0 now has two different times
+    with pytest.warns(UserWarning, match="scene 1 image 0"):
+        s = evaluate(est, dataset, progress=False)
+    assert s.summary["n_estimates"] == 8
+    assert s.summary["n_ignored"] == 2
+    assert s.summary["n_evaluated"] == 6
+    assert s.summary["AR"] == 1.0
+    # The toolkit averages the first time of every image in the file, targets or not.
+    assert s.summary["mean_time_per_image"] == pytest.approx(0.25)
+
+
+def test_only_top_inst_count_estimates_are_scored(dataset: BopDataset) -> None:
+    """fphigh puts a wrong pose above the right one: the right one is never looked at."""
+    s = evaluate(_estimates("fphigh"), dataset, progress=False)
+    assert s.summary["n_beyond_inst_count"] == 6
+    assert s.summary["AR"] == 0.0
+    np.testing.assert_allclose(s.errors["mssd"], 100.0, atol=1e-9)
+
+
+def test_missing_depth_reports_no_vsd(tmp_path: Path) -> None:
+    root = tmp_path / "icbin"
+    shutil.copytree(DATA / "icbin", root, ignore=shutil.ignore_patterns("depth"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s = evaluate(_estimates("tx20"), BopDataset(root), progress=False)
+    assert s.summary["AR"] is None and s.summary["AR_VSD"] is None
+    assert s.summary["images_without_depth"] == 3
+    assert "VSD not computed" in s.summary["notes"][0]
+    assert s.summary["AR_MSSD"] == pytest.approx(REF["tx20"]["bop19"]["bop19_average_recall_mssd"], abs=1e-3)
+    assert s.errors[vsd_column(0.05)].isna().all()
+    assert "vsd" not in s.recalls
+    assert json.dumps(s.to_json())  # None/NaN survive as JSON null
+
+
+def test_bad_input_is_named(dataset: BopDataset) -> None:
+    est = _estimates("gt")
+    est.at[2, "t"] = np.array([1.0, 2.0])
+    with pytest.raises(ValueError, match=r"row 2, field 't'"):
+        evaluate(est, dataset, progress=False)
+    with pytest.raises(ValueError, match=r"missing column\(s\) \['R'\]"):
+        evaluate(_estimates("gt").drop(columns=["R"]), dataset, progress=False)
+    from pipeline.bop import Target
+
+    with pytest.raises(ValueError, match=r"target object\(s\) \[9\]"):
+        evaluate(_estimates("gt"), dataset, targets=[Target(1, 0, 9, 1)], progress=False)
