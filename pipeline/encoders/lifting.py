@@ -1,4 +1,4 @@
-"""Lifting dense 2D feature maps to 3D points (FreeZe, Sec. 3).
+"""Lifting dense 2D feature maps to 3D points, as in FreeZe.
 
 Crop geometry. A crop box ``(x0, y0, side)`` (ints, image pixels) is the square of
 image pixels ``[x0, x0+side) x [y0, y0+side)``; it is resized to ``size x size``. With
@@ -140,6 +140,7 @@ def lift_model_visual_features(
     batch_size: int = 16,
     diameter: float | None = None,
     tol_frac: float = 0.02,
+    erode_px: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Visual features of model points from rendered template views.
 
@@ -152,6 +153,10 @@ def lift_model_visual_features(
     nearest back-projected pixel if that lies within ``tol_frac * diameter`` (diameter
     of ``points`` if not given), and features are averaged over the views that see
     the point. Points seen by no view take the feature of the nearest seen point.
+    Foreground pixels within ``erode_px`` pixels (of the encoder input) of the
+    silhouette are not used: their
+    colour is blended with the background by multisampling, and at the silhouette
+    the surface is seen at a grazing angle (0 keeps them).
 
     Returns ``(features (N, D) float32, view_count (N,) int32)``.
     """
@@ -176,7 +181,14 @@ def lift_model_visual_features(
             crops.append(crop_and_resize(rgb, (0, 0, rgb.shape[0]), S_in))
         fmaps = encoder.encode(np.stack(crops))
         for fmap, (rgb, depth, K, R, t) in zip(fmaps, chunk):
-            cam_pts, pixels = lift_depth(depth, K)
+            mask = np.asarray(depth) > 0
+            if erode_px > 0:
+                # erode_px counts encoder-input pixels; one of them spans several render
+                # pixels when the render is larger than the encoder input.
+                r = erode_px * int(math.ceil(rgb.shape[0] / S_in))
+                kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+                mask = cv2.erode(mask.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+            cam_pts, pixels = lift_depth(depth, K, mask)
             if len(cam_pts) == 0:
                 continue
             R = np.asarray(R, dtype=np.float64).reshape(3, 3)

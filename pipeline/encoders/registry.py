@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import abc
 import importlib
+import importlib.util
 import json
 from typing import Any, Callable, Literal
 
@@ -23,9 +24,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 EncoderKind = Literal["geometric", "visual"]
 
-# Modules whose import registers the built-in encoders. Imported lazily so that the
-# registry has no import-time dependency on them (and no import cycle).
+# Modules whose import registers encoders, imported on first use of the registry (so
+# the registry has no import-time dependency on them, and no import cycle). Modules
+# that need weights must load them lazily, in their factories, not at import.
 _BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex")
+_OPTIONAL_MODULES = ("pipeline.encoders.dinov2", "pipeline.encoders.gedi")
 
 
 class EncoderSpec(BaseModel):
@@ -133,6 +136,9 @@ def _load_builtins() -> None:
         _builtins_loaded = True
         for module in _BUILTIN_MODULES:
             importlib.import_module(module)
+        for module in _OPTIONAL_MODULES:
+            if importlib.util.find_spec(module) is not None:
+                importlib.import_module(module)
 
 
 def known_encoders() -> dict[str, EncoderKind]:

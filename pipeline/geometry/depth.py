@@ -65,7 +65,7 @@ def remove_outliers(
     *,
     max_center_dist_frac: float = 1.0,
     nb_neighbors: int = 20,
-    std_ratio: float = 2.0,
+    std_ratio: float = 3.0,
     cluster_eps_frac: float | None = 0.1,
     cluster_min_points: int = 5,
 ) -> np.ndarray:

@@ -56,9 +56,11 @@ def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.nda
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle in degrees of the relative rotation ``R_a^T R_b`` (geodesic distance)."""
     R_rel = np.asarray(R_a, dtype=np.float64).reshape(3, 3).T @ np.asarray(R_b, dtype=np.float64).reshape(3, 3)
-    # Clipping guards acos against round-off just outside [-1, 1].
-    cos = np.clip((np.trace(R_rel) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(cos)))
+    # atan2 of sine and cosine parts stays accurate near 0 and 180 deg, where acos of
+    # the trace alone loses precision.
+    sin = 0.5 * np.linalg.norm([R_rel[2, 1] - R_rel[1, 2], R_rel[0, 2] - R_rel[2, 0], R_rel[1, 0] - R_rel[0, 1]])
+    cos = 0.5 * (np.trace(R_rel) - 1.0)
+    return float(np.degrees(np.arctan2(sin, cos)))
 
 
 def random_rotation(rng: np.random.Generator | int | None = None) -> np.ndarray:

@@ -1,0 +1,152 @@
+"""PCA fusion, Kabsch and RANSAC on synthetic correspondences with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.geometry.transforms import random_rotation, rotation_angle_deg
+from pipeline.registration.fusion import apply_pca, fit_pca, fuse
+from pipeline.registration.ransac import (
+    RansacParams,
+    build_correspondences,
+    feature_neighbours,
+    kabsch,
+    register,
+)
+
+# --- fusion -----------------------------------------------------------------------
+
+
+def test_fit_pca_recovers_known_subspace():
+    rng = np.random.default_rng(0)
+    basis_true = np.linalg.qr(rng.normal(size=(10, 3)))[0].T  # (3, 10) orthonormal rows
+    scales = np.array([10.0, 5.0, 2.0])
+    X = (rng.normal(size=(4000, 3)) * scales) @ basis_true + 7.0
+    pca = fit_pca(X, n_components=64)
+    assert pca.components.shape == (10, 10)  # V = min(64, C=10, N)
+    np.testing.assert_allclose(pca.mean, 7.0, atol=0.6)
+    # Leading components span the true subspace, in order of variance.
+    for i in range(3):
+        assert abs(pca.components[i] @ basis_true[i]) == pytest.approx(1.0, abs=1e-2)
+    np.testing.assert_allclose(pca.explained_variance[:3], scales**2, rtol=0.1)
+    assert pca.explained_variance[3] < 1e-6
+    # Orthonormal rows, so projecting and back-projecting keeps the centred data.
+    Y = apply_pca(pca, X)
+    np.testing.assert_allclose(Y @ pca.components + pca.mean, X, atol=1e-3)
+    assert fit_pca(X[:5], 64).components.shape == (5, 10)  # V limited by N
+    # Deterministic signs.
+    np.testing.assert_array_equal(fit_pca(X, 4).components, fit_pca(X.copy(), 4).components)
+
+
+def test_fuse_normalises_each_part():
+    rng = np.random.default_rng(1)
+    g, v = rng.normal(size=(50, 66)) * 30, rng.normal(size=(50, 64)) * 0.01
+    f = fuse(g, v)
+    assert f.shape == (50, 130) and f.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(f[:, :66], axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(f[:, 66:], axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(fuse(g, None), f[:, :66])
+    with pytest.raises(ValueError, match="rows"):
+        fuse(g, v[:10])
+
+
+# --- correspondences and Kabsch ---------------------------------------------------
+
+
+def test_feature_neighbours_matches_brute_force():
+    rng = np.random.default_rng(2)
+    q, r = rng.normal(size=(300, 16)), rng.normal(size=(700, 16))
+    nn = feature_neighbours(q, r, k=4)
+    d = np.linalg.norm(q[:, None] - r[None], axis=2)
+    np.testing.assert_array_equal(nn, np.argsort(d, axis=1)[:, :4])
+
+
+def test_mutual_filter_and_fallback():
+    rng = np.random.default_rng(3)
+    model = rng.normal(size=(200, 8)).astype(np.float32)
+    scene = model[:100] + 0.01 * rng.normal(size=(100, 8)).astype(np.float32)
+    corr, top1 = build_correspondences(model, scene, RansacParams(mutual=True, min_mutual=30))
+    np.testing.assert_array_equal(top1, np.arange(100))
+    np.testing.assert_array_equal(corr, np.stack([np.arange(100)] * 2, axis=1))
+    # Few mutual matches: fall back to all scene -> model matches.
+    corr, _ = build_correspondences(model, scene[:20], RansacParams(mutual=True, min_mutual=30))
+    assert len(corr) == 20
+    corr, _ = build_correspondences(model, scene, RansacParams(knn=3))
+    assert corr.shape == (300, 2)
+
+
+def test_kabsch_exact_and_batched():
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(30, 3)) * 50
+    R, t = random_rotation(5), np.array([1.0, 2.0, 300.0])
+    Re, te = kabsch(src, src @ R.T + t)
+    np.testing.assert_allclose(Re, R, atol=1e-10)
+    np.testing.assert_allclose(te, t, atol=1e-8)
+    Rs = np.stack([random_rotation(i) for i in range(4)])
+    dst = np.einsum("bij,nj->bni", Rs, src)
+    Rb, tb = kabsch(np.broadcast_to(src, dst.shape), dst)
+    np.testing.assert_allclose(Rb, Rs, atol=1e-10)
+    np.testing.assert_allclose(tb, 0, atol=1e-8)
+    # A mirrored target still yields a proper rotation.
+    Rm, _ = kabsch(src, src * [1, 1, -1])
+    assert np.linalg.det(Rm) == pytest.approx(1.0)
+
+
+# --- RANSAC -----------------------------------------------------------------------
+
+
+def _synthetic_problem(seed: int, inlier_share: float):
+    """A 2000-point model, a 600-point noisy partial scene under a known pose, and
+    features that match correctly for ``inlier_share`` of the scene points."""
+    rng = np.random.default_rng(seed)
+    model = rng.normal(size=(2000, 3)) * [60, 40, 25]
+    R, t = random_rotation(rng), np.array([20.0, -10.0, 650.0])
+    idx = rng.choice(2000, 600, replace=False)
+    scene = model[idx] @ R.T + t + rng.normal(scale=0.5, size=(600, 3))
+    model_feats = rng.normal(size=(2000, 32)).astype(np.float32)
+    scene_feats = model_feats[idx] + 0.05 * rng.normal(size=(600, 32)).astype(np.float32)
+    wrong = rng.random(600) > inlier_share
+    scene_feats[wrong] = rng.normal(size=(wrong.sum(), 32))
+    return model, model_feats, scene, scene_feats, R, t, int((~wrong).sum())
+
+
+@pytest.mark.parametrize("backend", ["numpy", "open3d"])
+def test_register_recovers_known_pose_with_outliers(backend):
+    model, mf, scene, sf, R, t, n_good = _synthetic_problem(0, inlier_share=0.15)
+    diameter = 250.0
+    reg = register(model, mf, scene, sf, diameter, params=RansacParams(backend=backend, inlier_frac=0.02), seed=1)
+    assert rotation_angle_deg(reg.R, R) < 0.5
+    assert np.linalg.norm(reg.t - t) < 1.0
+    # Inliers: the correct matches (plus rare lucky wrong ones).
+    assert n_good <= reg.n_inliers <= n_good + 10
+    assert reg.inlier_ratio == pytest.approx(reg.n_inliers / 600)
+    assert reg.fitness > 0.99  # every scene point lies on the posed model
+    assert reg.n_correspondences == 600
+
+
+def test_register_numpy_backend_is_reproducible():
+    model, mf, scene, sf, *_ = _synthetic_problem(1, inlier_share=0.1)
+    params = RansacParams(inlier_frac=0.02, refine_iterations=0)
+    a = register(model, mf, scene, sf, 250.0, params=params, seed=7)
+    b = register(model, mf, scene, sf, 250.0, params=params, seed=7)
+    np.testing.assert_array_equal(a.R, b.R)
+    np.testing.assert_array_equal(a.t, b.t)
+    assert a.n_inliers == b.n_inliers
+
+
+def test_inlier_counts_rank_candidates():
+    """The candidate whose features match more often gets more inliers."""
+    model, mf, scene, sf_good, R, t, _ = _synthetic_problem(2, inlier_share=0.3)
+    _, _, _, sf_bad, _, _, _ = _synthetic_problem(2, inlier_share=0.08)
+    params = RansacParams(inlier_frac=0.02)
+    good = register(model, mf, scene, sf_good, 250.0, params=params, seed=0)
+    bad = register(model, mf, scene, sf_bad, 250.0, params=params, seed=0)
+    assert good.n_inliers > 2 * bad.n_inliers
+
+
+def test_register_rejects_mismatched_inputs():
+    with pytest.raises(ValueError, match="features"):
+        register(np.zeros((10, 3)), np.zeros((9, 4)), np.zeros((5, 3)), np.zeros((5, 4)), 1.0)
+    with pytest.raises(ValueError, match="extra|Extra"):
+        RansacParams(threshold=3)
