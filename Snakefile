@@ -21,7 +21,14 @@ for _ds in RUN.datasets:
         DATASETS.append(_ds)
     else:
         print(_why, file=sys.stderr)
-RUN_JSON = PLAN.to_json()
+# Jobs rebuild the plan from this variable. It is deliberately not a rule param:
+# Snakemake reruns jobs whose params change, but a job's output path already encodes
+# its key, so a change that does not alter a stage's key must not rerun it.
+os.environ["FREEZE_RUN_JSON"] = PLAN.to_json()
+
+envvars:
+    "FREEZE_RUN_JSON",
+
 CACHE = str(PLAN.cache)
 RESULTS = os.path.join(os.path.dirname(CACHE), "results")
 LOGS = os.path.join(os.path.dirname(CACHE), "logs")
@@ -31,7 +38,7 @@ PY = sys.executable
 def stage_shell(stage):
     """Shell command of a stage job: the same entry point as `freeze stage`."""
     return (f"{PY} -m pipeline.cli stage {stage} --dataset {{wildcards.ds}} --item {{params.item}} "
-            f"--expect-sig {{wildcards.sig}} --run-json {{params.run:q}} > {{log}} 2>&1")
+            f"--expect-sig {{wildcards.sig}} > {{log}} 2>&1")
 
 
 def stage_plan(wc, stage):
@@ -72,11 +79,10 @@ rule bop_all:
         os.path.join(RESULTS, "ar_table.md"),
     params:
         datasets=",".join(DATASETS),
-        run=RUN_JSON,
     log:
         os.path.join(LOGS, "bop_all.log"),
     shell:
-        f"{PY} -m pipeline.cli table --run-json {{params.run:q}} --out {{output}} > {{log}} 2>&1"
+        f"{PY} -m pipeline.cli table --out {{output}} > {{log}} 2>&1"
 
 
 onsuccess:

@@ -46,7 +46,7 @@ def stage(
     name: str = typer.Argument(..., help="stage name (render_templates, model_features, ...)"),
     dataset: str = typer.Option(..., help="dataset manifest name"),
     item: str = typer.Option(..., help="obj_XXXXXX, scene_XXXXXX, all or dataset"),
-    run_json: Optional[str] = typer.Option(None, help="resolved run manifest as JSON (Snakemake passes this)"),
+    run_json: Optional[str] = typer.Option(None, envvar="FREEZE_RUN_JSON", help="resolved run manifest as JSON (Snakemake passes it in $FREEZE_RUN_JSON)"),
     config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value (without --run-json)"),
     expect_sig: Optional[str] = typer.Option(None, help="fail unless the stage signature equals this"),
     progress: bool = typer.Option(True, help="show progress bars"),
@@ -113,7 +113,7 @@ def _fmt(v) -> str:
 
 def _print_scores(rows: dict[str, dict]) -> str:
     """Print the AR table and return it as Markdown."""
-    cols = ["AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "n_targets", "n_estimates", "time_per_image_s"]
+    cols = ["AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "n_targets", "n_estimates", "mean_time_per_image"]
     table = Table("dataset", *cols, title="BOP19 average recall")
     md = ["| dataset | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
     for name, s in rows.items():
@@ -127,7 +127,7 @@ def _print_scores(rows: dict[str, dict]) -> str:
 @app.command("table")
 def ar_table(
     config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
-    run_json: Optional[str] = typer.Option(None, help="resolved run manifest as JSON (Snakemake passes this)"),
+    run_json: Optional[str] = typer.Option(None, envvar="FREEZE_RUN_JSON", help="resolved run manifest as JSON (Snakemake passes it in $FREEZE_RUN_JSON)"),
     out: Optional[Path] = typer.Option(None, help="also write the table as Markdown here"),
 ) -> None:
     """Print the AR table of the run's datasets from their score artifacts."""

@@ -72,14 +72,14 @@ class RegisterParams(_Strict):
     pca_dim: int = Field(64, ge=1, description="V: visual feature dims after per-object PCA")
     inlier_frac: float = Field(0.05, gt=0, description="RANSAC inlier distance, fraction of the diameter")
     max_iterations: int = Field(50000, ge=100)
-    confidence: float = Field(0.9999, gt=0, lt=1)
+    confidence: float = Field(0.999, gt=0, lt=1)
     mutual: bool = False
     seed: int = 0
 
 
 class RefineParams(_Strict):
-    max_corr_frac: float = Field(0.05, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
-    iterations: int = Field(50, ge=1)
+    max_corr_frac: float = Field(0.1, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
+    iterations: int = Field(30, ge=1, description="ICP iterations per threshold of the coarse-to-fine schedule")
     point_to_plane: bool = True
 
 

@@ -6,7 +6,6 @@ rule model_features:
         f"{CACHE}/{{ds}}/model_features/{{sig}}/obj_{{obj}}/_manifest.json",
     params:
         item=lambda wc: f"obj_{wc.obj}",
-        run=RUN_JSON,
         check=lambda wc: stage_plan(wc, "model_features").signature,
     log:
         f"{LOGS}/{{ds}}/model_features/{{sig}}/obj_{{obj}}.log",

@@ -6,7 +6,6 @@ rule refine:
         f"{CACHE}/{{ds}}/refine/{{sig}}/scene_{{scene}}/_manifest.json",
     params:
         item=lambda wc: f"scene_{wc.scene}",
-        run=RUN_JSON,
         check=lambda wc: stage_plan(wc, "refine").signature,
     log:
         f"{LOGS}/{{ds}}/refine/{{sig}}/scene_{{scene}}.log",
@@ -22,7 +21,6 @@ rule refine_collect:
         f"{CACHE}/{{ds}}/refine/{{sig}}/all/_manifest.json",
     params:
         item="all",
-        run=RUN_JSON,
         check=lambda wc: stage_plan(wc, "refine").signature,
     log:
         f"{LOGS}/{{ds}}/refine/{{sig}}/all.log",

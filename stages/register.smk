@@ -7,7 +7,6 @@ rule register:
         f"{CACHE}/{{ds}}/register/{{sig}}/scene_{{scene}}/_manifest.json",
     params:
         item=lambda wc: f"scene_{wc.scene}",
-        run=RUN_JSON,
         check=lambda wc: stage_plan(wc, "register").signature,
     log:
         f"{LOGS}/{{ds}}/register/{{sig}}/scene_{{scene}}.log",

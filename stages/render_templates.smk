@@ -6,7 +6,6 @@ rule render_templates:
         f"{CACHE}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}/_manifest.json",
     params:
         item=lambda wc: f"obj_{wc.obj}",
-        run=RUN_JSON,
     log:
         f"{LOGS}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}.log",
     shell:

@@ -7,7 +7,6 @@ rule scene_features:
         f"{CACHE}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}/_manifest.json",
     params:
         item=lambda wc: f"scene_{wc.scene}",
-        run=RUN_JSON,
         check=lambda wc: stage_plan(wc, "scene_features").signature,
     log:
         f"{LOGS}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}.log",

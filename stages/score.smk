@@ -6,7 +6,6 @@ rule score:
         f"{CACHE}/{{ds}}/score/{{sig}}/all/_manifest.json",
     params:
         item="all",
-        run=RUN_JSON,
         check=lambda wc: stage_plan(wc, "score").signature,
     log:
         f"{LOGS}/{{ds}}/score/{{sig}}.log",

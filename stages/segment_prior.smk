@@ -6,7 +6,6 @@ rule segment_prior:
         f"{CACHE}/{{ds}}/segment_prior/{{sig}}/all/_manifest.json",
     params:
         item="all",
-        run=RUN_JSON,
     log:
         f"{LOGS}/{{ds}}/segment_prior/{{sig}}.log",
     shell:

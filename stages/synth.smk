@@ -4,7 +4,6 @@ rule synth:
         f"{CACHE}/{{ds}}/synth/{{sig}}/dataset/_manifest.json",
     params:
         item="dataset",
-        run=RUN_JSON,
     log:
         f"{LOGS}/{{ds}}/synth/{{sig}}.log",
     shell:

@@ -148,7 +148,7 @@ class Renderer:
         """
         pr = self._pyrender
         lighting = lighting or Lighting()
-        scene = pr.Scene(bg_color=np.zeros(4), ambient_light=np.asarray(lighting.ambient))
+        scene = pr.Scene(bg_color=np.zeros(4), ambient_light=np.asarray(lighting.ambient, dtype=float))
         for key, R, t in items:
             scene.add(self._meshes[key], pose=pose_matrix(R, t))
         scene.add(self._camera(K), pose=_CV_TO_GL)
