@@ -52,9 +52,11 @@ def stage(
     progress: bool = typer.Option(True, help="show progress bars"),
 ) -> None:
     """Run one stage for one item (what each Snakemake job calls)."""
+    from pipeline import store
     from pipeline.plan import plan_from_json
     from stages import stage_module
 
+    store.mark_job_start()
     plan = plan_from_json(run_json, _overrides(config))[dataset]
     sp = plan[name]
     if expect_sig and sp.signature != expect_sig:

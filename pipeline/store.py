@@ -31,6 +31,15 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 MANIFEST_NAME = "_manifest.json"
+
+# Set by the stage runner when a job starts, so that a manifest's wall time covers the
+# whole job (reading inputs and computing), not only the writing inside publish().
+JOB_START: float | None = None
+
+
+def mark_job_start() -> None:
+    global JOB_START
+    JOB_START = time.perf_counter()
 MANIFEST_SCHEMA = 1
 
 # Libraries whose versions are recorded in every manifest (they change outputs).
@@ -158,7 +167,7 @@ def publish(
     final_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = final_dir.parent / f".tmp-{final_dir.name}-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
-    t0 = time.perf_counter()
+    t0 = JOB_START if JOB_START is not None else time.perf_counter()
     manifest: dict[str, Any] = {
         "schema": MANIFEST_SCHEMA,
         "dataset": dataset,
