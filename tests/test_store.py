@@ -1,0 +1,74 @@
+"""Atomic publishing and the Zarr/Parquet helpers of the artifact store."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.store import (
+    load_arrays, load_attrs, publish, read_manifest, read_table, save_arrays, table_metadata, write_table,
+)
+
+KW = dict(stage="s", item="obj_000001", key="k" * 40, signature="x-kkkkkkkk", params={"n": 1},
+          upstream={"u": "y"}, code_version=1, dataset="d")
+
+
+def test_publish_writes_manifest_last_and_renames(tmp_path):
+    final = tmp_path / "stage" / "sig" / "obj_000001"
+    with publish(final, **KW) as w:
+        (w.dir / "data.txt").write_text("new")
+        assert not final.exists()
+        w.summary["n"] = np.int64(3)
+    m = read_manifest(final)
+    assert m["key"] == "k" * 40 and m["summary"] == {"n": 3} and m["params"] == {"n": 1}
+    assert (final / "data.txt").read_text() == "new"
+    assert not list(final.parent.glob(".tmp-*"))
+
+
+def test_failed_publish_keeps_previous_artifact_and_leaves_nothing(tmp_path):
+    final = tmp_path / "obj_000001"
+    with publish(final, **KW) as w:
+        (w.dir / "data.txt").write_text("old")
+    before = (final / "_manifest.json").read_text()
+    with pytest.raises(RuntimeError):
+        with publish(final, **KW) as w:
+            (w.dir / "data.txt").write_text("half-written")
+            raise RuntimeError("killed")
+    assert (final / "data.txt").read_text() == "old"
+    assert (final / "_manifest.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["obj_000001"]
+
+
+def test_republish_replaces_the_old_copy(tmp_path):
+    final = tmp_path / "obj_000001"
+    for text in ("one", "two"):
+        with publish(final, **KW) as w:
+            (w.dir / "data.txt").write_text(text)
+    assert (final / "data.txt").read_text() == "two"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["obj_000001"]
+
+
+def test_zarr_round_trip_is_exact_and_chunked_per_item(tmp_path):
+    rng = np.random.default_rng(0)
+    arrays = {"points": rng.normal(size=(4, 10, 3)).astype(np.float32), "ids": np.arange(4, dtype=np.int64),
+              "mask": rng.random((4, 5, 5)) > 0.5}
+    save_arrays(tmp_path / "a.zarr", arrays, attrs={"key": "abc", "shape": (1, 2)})
+    back = load_arrays(tmp_path / "a.zarr")
+    for k, v in arrays.items():
+        assert back[k].dtype == v.dtype and np.array_equal(back[k], v)
+    assert load_attrs(tmp_path / "a.zarr") == {"key": "abc", "shape": [1, 2]}
+    import zarr
+
+    assert zarr.open_group(str(tmp_path / "a.zarr"), mode="r")["points"].chunks == (1, 10, 3)
+
+
+def test_parquet_keeps_key_in_schema_metadata(tmp_path):
+    df = pd.DataFrame({"a": [1, 2], "R": [[1.0] * 9, [2.0] * 9]})
+    write_table(df, tmp_path / "t.parquet", metadata={"key": "abc"})
+    back = read_table(tmp_path / "t.parquet")
+    assert back.a.tolist() == [1, 2] and list(back.R[1]) == [2.0] * 9
+    assert table_metadata(tmp_path / "t.parquet") == {"key": "abc"}
+    assert json.loads(json.dumps(table_metadata(tmp_path / "t.parquet")))["key"] == "abc"
