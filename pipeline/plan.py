@@ -53,6 +53,14 @@ def parse_item(item: str) -> tuple[str, int | None]:
     return item, None
 
 
+def item_id(item: str, kind: str, stage: str) -> int:
+    """The id in ``item`` (``obj_000005`` -> 5), checking it is of ``kind`` for ``stage``."""
+    got, num = parse_item(item)
+    if got != kind or num is None:
+        raise ValueError(f"{stage} items are {kind}_XXXXXX, not '{item}'")
+    return num
+
+
 @dataclass(frozen=True)
 class StagePlan:
     """Key and location of one stage's artifacts for one dataset."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.plan import DatasetPlan, build_encoders, parse_item
+from pipeline.plan import DatasetPlan, build_encoders, item_id
 from pipeline.store import item_seed, load_arrays, publish, save_arrays
 
 CODE_VERSION = 1
@@ -21,9 +21,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.encoders.lifting import lift_model_visual_features
     from pipeline.geometry.sampling import sample_surface
 
-    kind, obj_id = parse_item(item)
-    if kind != "obj":
-        raise ValueError(f"model_features items are objects (obj_XXXXXX), not '{item}'")
+    obj_id = item_id(item, "obj", "model_features")
     sp = plan["model_features"]
     p = plan.run.stages.model_features
     bop = plan.bop()

@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from pipeline.plan import DatasetPlan, obj_item, parse_item, scene_item
+from pipeline.plan import DatasetPlan, obj_item, item_id, scene_item
 from pipeline.store import load_arrays, publish, read_table, write_table
 
 CODE_VERSION = 1
@@ -28,9 +28,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.progress import progress_bar
     from pipeline.registration.selection import estimate_score
 
-    kind, scene_id = parse_item(item)
-    if kind != "scene":
-        raise ValueError(f"refine items are scenes (scene_XXXXXX) or 'all', not '{item}'")
+    scene_id = item_id(item, "scene", "refine")
     sp = plan["refine"]
     p = plan.run.stages.refine
     infos = plan.bop().models_info()

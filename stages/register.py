@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from pipeline.plan import DatasetPlan, obj_item, parse_item
+from pipeline.plan import DatasetPlan, obj_item, item_id
 from pipeline.store import item_seed, load_arrays, publish, read_table, write_table
 
 CODE_VERSION = 1
@@ -26,9 +26,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.registration.ransac import RansacParams, register
     from pipeline.registration.selection import select_per_target
 
-    kind, scene_id = parse_item(item)
-    if kind != "scene":
-        raise ValueError(f"register items are scenes (scene_XXXXXX), not '{item}'")
+    scene_id = item_id(item, "scene", "register")
     sp = plan["register"]
     p = plan.run.stages.register
     bop = plan.bop()

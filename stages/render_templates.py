@@ -6,7 +6,7 @@ mask (R, S, S) bool, K (R, 3, 3), R (R, 3, 3), t (R, 3) mm (model-to-camera).
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan, parse_item
+from pipeline.plan import DatasetPlan, item_id
 from pipeline.store import publish, save_arrays
 
 CODE_VERSION = 1
@@ -16,9 +16,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.render import Renderer
     from pipeline.render.templates import render_templates, template_views
 
-    kind, obj_id = parse_item(item)
-    if kind != "obj":
-        raise ValueError(f"render_templates items are objects (obj_XXXXXX), not '{item}'")
+    obj_id = item_id(item, "obj", "render_templates")
     sp = plan["render_templates"]
     p = plan.run.stages.render_templates
     bop = plan.bop()

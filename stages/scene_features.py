@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from pipeline.plan import DatasetPlan, parse_item
+from pipeline.plan import DatasetPlan, item_id
 from pipeline.store import item_seed, publish, read_table, save_arrays, write_table
 
 CODE_VERSION = 1
@@ -28,9 +28,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.plan import build_encoders
     from pipeline.progress import progress_bar
 
-    kind, scene_id = parse_item(item)
-    if kind != "scene":
-        raise ValueError(f"scene_features items are scenes (scene_XXXXXX), not '{item}'")
+    scene_id = item_id(item, "scene", "scene_features")
     sp = plan["scene_features"]
     p = plan.run.stages.scene_features
     bop = plan.bop()
