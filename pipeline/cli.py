@@ -115,14 +115,15 @@ def _fmt(v) -> str:
 
 def _print_scores(rows: dict[str, dict]) -> str:
     """Print the AR table and return it as Markdown."""
-    cols = ["AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "n_targets", "n_estimates", "mean_time_per_image"]
-    table = Table("dataset", *cols, title="BOP19 average recall")
-    md = ["| dataset | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
+    cols = {"AR": "AR", "AR_VSD": "AR_VSD", "AR_MSSD": "AR_MSSD", "AR_MSPD": "AR_MSPD",
+            "n_targets": "targets", "n_estimates": "estimates", "mean_time_per_image": "s/image"}
+    table = Table("results", *cols.values(), title="BOP19 average recall")
+    md = ["| results | " + " | ".join(cols.values()) + " |", "|" + "---|" * (len(cols) + 1)]
     for name, s in rows.items():
         vals = [_fmt(s.get(c)) for c in cols]
         table.add_row(name, *vals)
         md.append(f"| {name} | " + " | ".join(vals) + " |")
-    Console().print(table)
+    Console(width=max(100, Console().width)).print(table)
     return "\n".join(md) + "\n"
 
 
