@@ -99,14 +99,24 @@ def score(
     targets: Optional[Path] = typer.Option(None, help="targets file (default <root>/test_targets_bop19.json)"),
     out: Optional[Path] = typer.Option(None, help="write errors.parquet and scores.json here"),
     workers: int = typer.Option(1, help="worker processes"),
-    vsd_delta: float = typer.Option(15.0, help="VSD tolerance in mm (5 for ITODD)"),
+    vsd_delta: Optional[float] = typer.Option(None, help="VSD tolerance in mm [default: 5 for itodd, else 15]"),
 ) -> None:
     """Score a BOP results CSV with the BOP19 metrics (VSD, MSSD, MSPD, AR)."""
+    from pipeline.bop.errors import BopFormatError
     from pipeline.metrics import score_results_file
 
-    s = score_results_file(results, dataset_root, split=split, targets_file=targets, out_dir=out,
-                           n_workers=workers, vsd_delta=vsd_delta)
+    try:
+        s = score_results_file(results, dataset_root, split=split, targets_file=targets, out_dir=out,
+                               n_workers=workers, vsd_delta=vsd_delta)
+    except BopFormatError as e:
+        console.print(f"[red]{e}")
+        raise typer.Exit(1)
     _print_scores({results.stem: s.summary})
+    summ = s.summary
+    console.print(f"{summ['n_estimates']} estimates: {summ['n_evaluated']} evaluated, {summ['n_ignored']} ignored "
+                  f"(not a target), {summ['n_beyond_inst_count']} beyond inst_count")
+    for note in summ.get("notes", []):
+        console.print(f"[yellow]{note}")
 
 
 def _fmt(v) -> str:

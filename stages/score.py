@@ -11,7 +11,7 @@ from __future__ import annotations
 from pipeline.plan import DatasetPlan
 from pipeline.store import publish
 
-CODE_VERSION = 1
+CODE_VERSION = 2
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:

@@ -43,3 +43,15 @@ def test_stage_command_rejects_a_stale_signature():
     result = runner.invoke(app, ["stage", "score", "--dataset", "synthtiny", "--item", "all", "--expect-sig", "bop19-00000000"])
     assert result.exit_code == 2
     assert "signature" in result.output
+
+
+def test_score_command_names_the_bad_line(tmp_path):
+    est = read_estimates_json(DATA / "estimates" / "gt_icbin-test.json")
+    csv = tmp_path / "bad_icbin-test.csv"
+    write_results_csv(csv, est)
+    lines = csv.read_text().splitlines()
+    lines[2] = lines[2].replace(",", ",x", 1)
+    csv.write_text("\n".join(lines) + "\n")
+    result = runner.invoke(app, ["score", str(csv), "--dataset-root", str(DATA / "icbin")])
+    assert result.exit_code == 1
+    assert "line 3" in result.output

@@ -1,4 +1,4 @@
-"""Unit and property tests of the BOP19 metric building blocks (no rendering)."""
+"""Unit and property tests of the BOP19 metric building blocks (rendering only in the crop-renderer test)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.metrics import (
     VSD_TAUS,
+    Crop,
     depth_to_distance,
     greedy_match,
     mspd,
@@ -19,8 +20,11 @@ from pipeline.metrics import (
     symmetry_transformations,
     valid_gt_mask,
     vsd,
+    vsd_crops,
     vsd_from_distances,
 )
+from pipeline.metrics.evaluate import visib_bin
+from pipeline.metrics.pose_errors import hull_indices, probe_indices
 
 K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
 RX180 = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -132,6 +136,29 @@ def test_errors_equal_brute_force_over_symmetries() -> None:
         assert mspd(R_e, t_e, R_g, t_g, K, pts, *syms) == pytest.approx(_brute(pts, syms, proj), rel=1e-12)
 
 
+def test_hull_and_bounds_give_the_same_errors() -> None:
+    """MSSD on the convex hull vertices only, and MSPD with the hull as a middle bound,
+    equal the plain computation (the scorer uses both)."""
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([_cylinder(n=64), rng.uniform(-20, 20, (400, 3))])
+    hull = hull_indices(pts)
+    assert len(hull) == 128  # the rim; no interior point
+    syms = symmetry_transformations([RX180], [{"axis": [0, 0, 1], "offset": [0, 0, 0]}], 0.01)
+    hull_probes = probe_indices(pts[hull], 16)
+    for i in range(6):
+        R_g = Rotation.random(random_state=rng).as_matrix()
+        t_g = rng.uniform([-100, -100, 500], [100, 100, 900])
+        R_e = Rotation.random(random_state=rng).as_matrix() if i % 2 else Rotation.from_rotvec(rng.normal(0, 0.1, 3)).as_matrix() @ R_g
+        t_e = t_g + rng.normal(0, 15, 3)
+        plain = mssd(R_e, t_e, R_g, t_g, pts, *syms, probes=np.arange(0))
+        assert mssd(R_e, t_e, R_g, t_g, pts[hull], *syms, hull_probes) == pytest.approx(plain, rel=1e-12, abs=1e-9)
+        plain = mspd(R_e, t_e, R_g, t_g, K, pts, *syms, probes=np.arange(0))
+        assert mspd(R_e, t_e, R_g, t_g, K, pts, *syms, hull[hull_probes], mid=hull) == pytest.approx(plain, rel=1e-12)
+    # Degenerate (flat) point sets keep every point.
+    flat = np.c_[rng.uniform(-1, 1, (20, 2)), np.zeros(20)]
+    np.testing.assert_array_equal(hull_indices(flat), np.arange(20))
+
+
 def test_project_matches_pinhole() -> None:
     uv = project(np.array([[10.0, -20.0, 0.0]]), K, np.eye(3), np.array([0.0, 0.0, 500.0]))
     np.testing.assert_allclose(uv, [[K[0, 0] * 10 / 500 + K[0, 2], K[1, 1] * -20 / 500 + K[1, 2]]])
@@ -197,6 +224,74 @@ def test_vsd_crop_equals_full_image() -> None:
         depth_to_distance(test, Kc), depth_to_distance(est, Kc), depth_to_distance(gt, Kc), 15.0, VSD_TAUS, 80.0
     )
     np.testing.assert_array_equal(vsd(test, est, gt, Kc, 15.0, 80.0), full)
+
+
+def test_vsd_crops_equal_full_images() -> None:
+    """VSD from crops of the renders (as the scorer renders them) equals VSD on full images."""
+    rng = np.random.default_rng(4)
+    shape = (48, 64)
+    Kc = np.array([[300.0, 0, 31.5], [0, 300.0, 23.5], [0, 0, 1]])
+    gt = _square(shape, 10, 12, 20, 700.0)
+    test = np.where(rng.random(shape) < 0.1, 0.0, gt + rng.normal(0, 1, shape))
+    for est in (_square(shape, 14, 18, 20, 705.0), _square(shape, 30, 50, 25, 702.0), 0 * gt):
+        full = vsd(test, est, gt, Kc, 15.0, 80.0)
+        # Crops with zero margins, one reaching past the image border.
+        crops = []
+        for im, pad in ((est, 3), (gt, 0)):
+            ys, xs = np.nonzero(im)
+            if len(ys) == 0:
+                crops.append(None)
+                continue
+            y0, x0 = ys.min() - pad, xs.min() - pad
+            big = np.zeros((shape[0] + 20, shape[1] + 20))
+            big[: shape[0], : shape[1]] = im
+            crops.append(Crop(big[max(y0, 0) : ys.max() + 1 + pad, max(x0, 0) : xs.max() + 1 + pad], max(x0, 0), max(y0, 0)))
+        np.testing.assert_array_equal(vsd_crops(test, crops[0], crops[1], Kc, 15.0, 80.0), full)
+    np.testing.assert_array_equal(vsd_crops(test, None, None, Kc, 15.0, 80.0), 1.0)
+
+
+def test_crop_renders_equal_full_renders() -> None:
+    """Renderer.render_depth_crop: the same pixels as the full render inside object_box,
+    nothing rendered outside it, depth within the full render's resolution."""
+    import trimesh
+
+    from pipeline.render.renderer import Renderer
+
+    rng = np.random.default_rng(5)
+    mesh = trimesh.creation.cylinder(radius=35.0, height=120.0, sections=48)
+    with Renderer(640, 480) as r:
+        r.add_mesh(1, mesh, smooth=False)
+        r.add_mesh(2, trimesh.creation.box((100.0, 70.0, 50.0)), smooth=False)
+        n_pix = n_diff = 0
+        for i in range(12):
+            key = 1 + i % 2
+            R = Rotation.random(random_state=rng).as_matrix()
+            t = rng.uniform([-250, -180, 500], [250, 180, 1200])
+            full = r.render_depth(key, R, t, K)
+            box = r.object_box(key, R, t, K)
+            if box is None:
+                assert not (full > 0).any()
+                continue
+            x0, y0, w, h = box
+            inside = np.zeros(full.shape, bool)
+            inside[y0 : y0 + h, x0 : x0 + w] = True
+            assert not (full[~inside] > 0).any()
+            crop = r.render_depth_crop(key, R, t, K, box)
+            assert crop.shape == (h, w)
+            ref = full[y0 : y0 + h, x0 : x0 + w]
+            both = (ref > 0) & (crop > 0)
+            n_pix += int((ref > 0).sum())
+            n_diff += int(((ref > 0) != (crop > 0)).sum())
+            np.testing.assert_allclose(crop[both], ref[both], atol=0.05)
+        assert n_pix > 10000 and n_diff <= 3
+        # Full renders still work after crop renders (same renderer, viewport restored).
+        assert r.render_depth(1, np.eye(3), np.array([0.0, 0.0, 800.0]), K).shape == (480, 640)
+
+
+def test_visibility_bins() -> None:
+    np.testing.assert_array_equal(
+        visib_bin([0.0, 0.05, 0.1, 0.3, 0.7, 0.8999, 0.9, 0.9999, 1.0]), [0, 0, 1, 3, 7, 8, 9, 9, 9]
+    )
 
 
 def test_sphere_projections_overlap() -> None:

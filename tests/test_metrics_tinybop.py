@@ -156,3 +156,76 @@ def test_bad_input_is_named(dataset: BopDataset) -> None:
 
     with pytest.raises(ValueError, match=r"target object\(s\) \[9\]"):
         evaluate(_estimates("gt"), dataset, targets=[Target(1, 0, 9, 1)], progress=False)
+
+
+@pytest.mark.parametrize("variant", ["gt", "rx20", "tx20", "symflip"])
+def test_per_visibility_breakdown(dataset: BopDataset, variant: str) -> None:
+    """Targets are counted in the bin of their visible fraction; the target-weighted
+    mean of the per-bin recalls is the overall recall."""
+    from pipeline.metrics.evaluate import VISIB_BIN_EDGES, visib_bin
+
+    s = evaluate(_estimates(variant), dataset, progress=False)
+    pv = s.per_visibility
+    assert len(pv) == 10 and list(pv["visib_min"]) == list(VISIB_BIN_EDGES[:-1])
+    assert pv["n_targets"].sum() == s.summary["n_targets"]
+    # Every valid GT instance has an estimate of its object here, so errors lists them all.
+    valid = s.errors.drop_duplicates(["scene_id", "im_id", "gt_id"])
+    valid = valid[valid["gt_valid"]]
+    assert len(valid) == s.summary["n_targets"]
+    np.testing.assert_array_equal(pv["n_targets"], np.bincount(visib_bin(valid["gt_visib_fract"]), minlength=10))
+    filled = pv[pv["n_targets"] > 0]
+    empty = pv[pv["n_targets"] == 0]
+    assert empty[["AR_VSD", "AR_MSSD", "AR_MSPD", "AR"]].isna().all().all()
+    for col in ("AR_VSD", "AR_MSSD", "AR_MSPD", "AR"):
+        pooled = (filled[col] * filled["n_targets"]).sum() / filled["n_targets"].sum()
+        assert pooled == pytest.approx(s.summary[col], abs=1e-12), col
+    if variant in ("gt", "symflip"):
+        assert (filled["AR"] == 1.0).all()
+    js = json.loads(json.dumps(s.to_json()))
+    assert len(js["per_visibility"]) == 10
+    assert all(r["AR"] is None for r in js["per_visibility"] if r["n_targets"] == 0)
+
+
+def test_timing_split_is_reported(tmp_path: Path) -> None:
+    csv = tmp_path / "tx20_icbin-test.csv"
+    write_results_csv(csv, _estimates("tx20"))
+    for workers in (1, 2):
+        s = score_results_file(csv, DATA / "icbin", out_dir=tmp_path / f"out{workers}", n_workers=workers)
+        t = s.summary["timing"]
+        for k in ("read", "prepare", "load", "vsd_render", "vsd_compare", "mssd", "mspd", "errors_wall", "match", "write"):
+            assert t[k] >= 0.0, k
+        assert t["vsd_render"] > 0 and t["mssd"] > 0 and t["mspd"] > 0
+        assert t["n_workers"] == workers
+        # One render per GT instance of each image, plus one per estimate (6 + 6).
+        assert t["n_renders"] == 12
+        summary, _ = load_scores(tmp_path / f"out{workers}")
+        assert summary["summary"]["timing"]["n_renders"] == 12
+
+
+def test_malformed_results_file_names_the_line(tmp_path: Path) -> None:
+    from pipeline.bop import BopFormatError
+
+    csv = tmp_path / "gt_icbin-test.csv"
+    write_results_csv(csv, _estimates("gt"))
+    lines = csv.read_text().splitlines()
+    lines[3] = lines[3].replace(",", ";", 1)
+    csv.write_text("\n".join(lines) + "\n")
+    with pytest.raises(BopFormatError, match=r"line 4: expected 7 comma-separated fields"):
+        score_results_file(csv, DATA / "icbin")
+    lines = csv.read_text().splitlines()
+    lines[3] = "1,0,1,0.5,1 0 0 0 1 0 0 0 nan,0 0 500,0.25"
+    csv.write_text("\n".join(lines) + "\n")
+    with pytest.raises(BopFormatError, match=r"line 4, field 'R'"):
+        score_results_file(csv, DATA / "icbin")
+
+
+def test_estimates_for_unknown_objects_are_ignored(dataset: BopDataset) -> None:
+    """An object that is not a target of the image (even one with no model) is ignored and counted."""
+    est = _estimates("gt")
+    stray = est.iloc[:3].copy()
+    stray["obj_id"] = 99
+    est = pd.concat([est, stray], ignore_index=True)
+    s = evaluate(est, dataset, progress=False)
+    assert s.summary["n_ignored"] == 3 and s.summary["n_evaluated"] == 6
+    assert s.summary["AR"] == 1.0
+    assert 99 not in set(s.errors["obj_id"])

@@ -14,9 +14,10 @@ from .evaluate import (
 from .matching import greedy_match, valid_gt_mask
 from .pose_errors import mspd, mssd, project
 from .symmetry import model_symmetries, symmetry_transformations
-from .vsd import VSD_TAUS, depth_to_distance, sphere_projections_overlap, vsd, vsd_from_distances
+from .vsd import VSD_TAUS, Crop, depth_to_distance, sphere_projections_overlap, vsd, vsd_crops, vsd_from_distances
 
 __all__ = [
+    "Crop",
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
     "VSD_TAUS",
@@ -37,5 +38,6 @@ __all__ = [
     "valid_gt_mask",
     "vsd",
     "vsd_column",
+    "vsd_crops",
     "vsd_from_distances",
 ]

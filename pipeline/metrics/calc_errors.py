@@ -8,7 +8,9 @@ worker processes; each process holds one :class:`ErrorCalculator` that loads the
 
 from __future__ import annotations
 
+import time as _time
 import warnings
+from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,9 +20,9 @@ import numpy as np
 from pipeline.bop import BopDataset, ModelInfo, load_json, read_ply
 from pipeline.bop.dataset import parse_models_info
 
-from .pose_errors import mspd, mssd, probe_indices
+from .pose_errors import hull_indices, mspd, mssd, probe_indices
 from .symmetry import DEFAULT_MAX_SYM_DISC_STEP, model_symmetries
-from .vsd import VSD_TAUS, sphere_projections_overlap, vsd
+from .vsd import VSD_TAUS, Crop, sphere_projections_overlap, vsd_crops
 
 
 @dataclass(frozen=True)
@@ -64,7 +66,9 @@ class _Model:
     sym_R: np.ndarray  # (S, 3, 3)
     sym_t: np.ndarray  # (S, 3) mm
     diameter: float
-    probes: np.ndarray  # vertex indices for the error lower bounds
+    hull: np.ndarray  # indices of the convex hull vertices (MSSD is exact on them)
+    hull_probes: np.ndarray  # indices into pts[hull] for the MSSD lower bounds
+    probes: np.ndarray  # indices into pts (hull vertices) for the MSPD lower bounds
 
 
 class ErrorCalculator:
@@ -77,6 +81,9 @@ class ErrorCalculator:
         self._infos: dict[int, ModelInfo] | None = None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._taus = np.asarray(params.vsd_taus, dtype=np.float64)
+        #: Seconds per part (load: depth images and models; vsd_render; vsd_compare;
+        #: mssd; mspd) and ``n_renders``, accumulated over :meth:`image_errors` calls.
+        self.timing: dict[str, float] = defaultdict(float)
 
     def close(self) -> None:
         for r in self._renderers.values():
@@ -93,8 +100,10 @@ class ErrorCalculator:
             ply = read_ply(eval_model_path(self.dataset, obj_id))
             sym_R, sym_t = model_symmetries(infos[obj_id], self.params.max_sym_disc_step)
             pts = ply.vertices.astype(np.float64)
+            hull = hull_indices(pts)
+            hull_probes = probe_indices(pts[hull])
             self._models[obj_id] = _Model(
-                pts, ply.faces, sym_R, sym_t, float(infos[obj_id].diameter), probe_indices(pts)
+                pts, ply.faces, sym_R, sym_t, float(infos[obj_id].diameter), hull, hull_probes, hull[hull_probes]
             )
         return self._models[obj_id]
 
@@ -118,45 +127,64 @@ class ErrorCalculator:
         Keys: scene_id, im_id, obj_id, est_id, gt_id, score, mssd (mm; inf when the
         centres are more than a diameter apart, as in the toolkit), mspd (px) and
         ``vsd`` ((T,) float64 per tau, or None when VSD is not computed).
+
+        Model depths are rendered only in the image region where the model projects
+        (``Renderer.render_depth_crop``), each GT instance once per image and each
+        estimate once. Time spent per part accumulates in :attr:`timing`.
         """
         p = self.params
+        tm = self.timing
+        clock = _time.perf_counter
         K = np.asarray(job.K, dtype=np.float64)
         K_render = K.copy()
         K_render[0, 2] -= p.render_offset
         K_render[1, 2] -= p.render_offset
         depth_test = None
-        gt_depth: dict[int, np.ndarray] = {}
+        gt_depth: dict[int, Crop | None] = {}
         rows = []
         for est_id, obj_id, score, R_e, t_e in job.ests:
             gts = [g for g in job.gts if g[1] == obj_id]
             if not gts:
                 continue
+            t0 = clock()
             m = self.model(obj_id)
-            est_depth = None
+            tm["load"] += clock() - t0
+            est_depth: Crop | None | bool = False  # False: not rendered yet
             for gt_id, _, R_g, t_g in gts:
+                t0 = clock()
                 if np.linalg.norm(t_e - t_g) < m.diameter:
-                    e_mssd = mssd(R_e, t_e, R_g, t_g, m.pts, m.sym_R, m.sym_t, m.probes)
+                    # Exact on the hull vertices (see pose_errors.hull_indices).
+                    e_mssd = mssd(R_e, t_e, R_g, t_g, m.pts[m.hull], m.sym_R, m.sym_t, m.hull_probes)
                 else:
                     e_mssd = float("inf")
-                e_mspd = mspd(R_e, t_e, R_g, t_g, K, m.pts, m.sym_R, m.sym_t, m.probes)
+                t1 = clock()
+                e_mspd = mspd(R_e, t_e, R_g, t_g, K, m.pts, m.sym_R, m.sym_t, m.probes, mid=m.hull)
+                t2 = clock()
+                tm["mssd"] += t1 - t0
+                tm["mspd"] += t2 - t1
                 e_vsd = None
                 if p.compute_vsd:
                     if not sphere_projections_overlap(0.5 * m.diameter, t_e, t_g):
                         e_vsd = np.ones(len(self._taus))
                     else:
-                        ren = self._renderer(job.width, job.height, obj_id)
                         if depth_test is None:
+                            t0 = clock()
                             depth_test = self.dataset.load_depth(job.scene_id, job.im_id)
+                            tm["load"] += clock() - t0
                             if depth_test.shape != (job.height, job.width):
                                 raise ValueError(
                                     f"{self.dataset.depth_path(job.scene_id, job.im_id)}: depth is "
                                     f"{depth_test.shape[1]}x{depth_test.shape[0]}, camera says {job.width}x{job.height}"
                                 )
-                        if est_depth is None:
-                            est_depth = ren.render_depth(obj_id, R_e, t_e, K_render)
+                        t0 = clock()
+                        if est_depth is False:
+                            est_depth = self._render(job, obj_id, R_e, t_e, K_render)
                         if gt_id not in gt_depth:
-                            gt_depth[gt_id] = ren.render_depth(obj_id, R_g, t_g, K_render)
-                        e_vsd = vsd(depth_test, est_depth, gt_depth[gt_id], K, p.vsd_delta, m.diameter, self._taus)
+                            gt_depth[gt_id] = self._render(job, obj_id, R_g, t_g, K_render)
+                        t1 = clock()
+                        e_vsd = vsd_crops(depth_test, est_depth, gt_depth[gt_id], K, p.vsd_delta, m.diameter, self._taus)
+                        tm["vsd_render"] += t1 - t0
+                        tm["vsd_compare"] += clock() - t1
                 rows.append(
                     {
                         "scene_id": job.scene_id,
@@ -171,6 +199,16 @@ class ErrorCalculator:
                     }
                 )
         return rows
+
+    def _render(self, job: ImageJob, obj_id: int, R: np.ndarray, t: np.ndarray, K_render: np.ndarray) -> Crop | None:
+        """Depth of the model in the part of the image where it projects; None if outside."""
+        ren = self._renderer(job.width, job.height, obj_id)
+        box = ren.object_box(obj_id, R, t, K_render)
+        if box is None:
+            return None
+        self.timing["n_renders"] += 1
+        x0, y0, w, h = box
+        return Crop(ren.render_depth_crop(obj_id, R, t, K_render, box), x0, y0)
 
 
 def eval_models_info(dataset: BopDataset) -> dict[int, ModelInfo]:
@@ -207,10 +245,11 @@ def init_worker(root: str, split: str, split_type: str | None, params: ErrorPara
     _WORKER = ErrorCalculator(BopDataset(Path(root), split, split_type), params)
 
 
-def run_jobs(jobs: list[ImageJob]) -> list[dict]:
-    """Pool task: the error rows of a chunk of images."""
+def run_jobs(jobs: list[ImageJob]) -> tuple[list[dict], dict[str, float]]:
+    """Pool task: the error rows of a chunk of images, and the time spent per part."""
     assert _WORKER is not None, "init_worker was not called in this process"
+    before = dict(_WORKER.timing)
     rows = []
     for job in jobs:
         rows.extend(_WORKER.image_errors(job))
-    return rows
+    return rows, {k: v - before.get(k, 0.0) for k, v in _WORKER.timing.items()}

@@ -72,25 +72,41 @@ class Scores:
     errors: one row per (evaluated estimate, GT instance of its object): scene_id,
       im_id, obj_id, est_id, gt_id, score, gt_visib_fract, gt_valid, mssd (mm), mspd
       (px), vsd_tau_0.05 .. vsd_tau_0.50 (NaN without VSD).
+      timing: seconds per part: read (the CSV), prepare (checks, selection, GT
+      annotations), load (depth images, models), vsd_render, vsd_compare, mssd, mspd
+      (summed over worker processes), errors_wall (wall time of the error
+      computation), match (matching, recalls, breakdowns), write (errors.parquet);
+      n_renders, n_workers.
     per_object: obj_id, n_targets, AR_VSD, AR_MSSD, AR_MSPD, AR per object.
     recalls: "vsd" (n_tau, n_theta), "mssd" (10,), "mspd" (10,) recall arrays.
+    per_visibility: visib_min, visib_max, n_targets, AR_VSD, AR_MSSD, AR_MSPD, AR per
+      visible-fraction bin of the valid GT instances ([0, 0.1), ..., [0.9, 1.0]; NaN
+      where a bin has no target). A target counts as found in the bin of the GT
+      instance its estimate was matched to.
     """
 
     summary: dict[str, Any]
     errors: pd.DataFrame
     per_object: pd.DataFrame
     recalls: dict[str, np.ndarray] = field(default_factory=dict)
+    per_visibility: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready content of ``scores.json``."""
         return {
             "summary": self.summary,
             "recalls": {k: np.asarray(v).tolist() for k, v in self.recalls.items()},
-            "per_object": [
-                {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()}
-                for r in self.per_object.to_dict(orient="records")
-            ],
+            "per_object": _records(self.per_object),
+            "per_visibility": _records(self.per_visibility),
         }
+
+
+def _records(df: pd.DataFrame) -> list[dict[str, Any]]:
+    """Rows of a table as JSON-ready dicts (NaN as None)."""
+    return [
+        {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()}
+        for r in df.to_dict(orient="records")
+    ]
 
 
 # ---------------------------------------------------------------------------- inputs
@@ -193,8 +209,15 @@ def _chunks(items: list, n: int) -> list[list]:
 
 def _compute_errors(
     dataset: BopDataset, jobs: list[ImageJob], params: ErrorParams, n_workers: int, progress: bool
-) -> list[dict]:
+) -> tuple[list[dict], dict[str, float]]:
+    """Error rows of all jobs, and the seconds per part summed over the processes."""
     rows: list[dict] = []
+    timing: dict[str, float] = {}
+
+    def add(part: dict[str, float]) -> None:
+        for k, v in part.items():
+            timing[k] = timing.get(k, 0.0) + v
+
     bar = None
     if progress and jobs:
         from rich.progress import Progress
@@ -211,6 +234,7 @@ def _compute_errors(
                     if bar is not None:
                         bar.advance(task)
             finally:
+                add(calc.timing)
                 calc.close()
         else:
             # Small chunks keep the workers busy to the end; a chunk amortises the IPC.
@@ -222,14 +246,15 @@ def _compute_errors(
                 initargs=(str(dataset.root), dataset.split, dataset.split_type, params),
             ) as pool:
                 chunks = _chunks(jobs, chunk)
-                for part, done in zip(pool.imap(run_jobs, chunks), chunks):
+                for (part, part_time), done in zip(pool.imap(run_jobs, chunks), chunks):
                     rows.extend(part)
+                    add(part_time)
                     if bar is not None:
                         bar.advance(task, len(done))
     finally:
         if bar is not None:
             bar.stop()
-    return rows
+    return rows, timing
 
 
 def _errors_frame(rows: list[dict], taus: np.ndarray) -> pd.DataFrame:
@@ -251,6 +276,17 @@ def _errors_frame(rows: list[dict], taus: np.ndarray) -> pd.DataFrame:
 # ---------------------------------------------------------------------------- matching and recall
 
 
+#: Edges of the visible-fraction bins of the per-visibility breakdown: [0, 0.1), [0.1,
+#: 0.2), ..., [0.9, 1.0] (the last bin is closed). Built from tenths for exact edges.
+VISIB_BIN_EDGES: np.ndarray = np.arange(11) / 10.0
+
+
+def visib_bin(visib_fract: np.ndarray | float) -> np.ndarray:
+    """Index (0..9) of the visible-fraction bin of each value (see ``VISIB_BIN_EDGES``)."""
+    idx = np.searchsorted(VISIB_BIN_EDGES, np.asarray(visib_fract, dtype=np.float64), side="right") - 1
+    return np.clip(idx, 0, len(VISIB_BIN_EDGES) - 2)
+
+
 def _score(
     dataset: BopDataset,
     targets: list[Target],
@@ -258,25 +294,45 @@ def _score(
     taus: np.ndarray,
     with_vsd: bool,
     visib_gt_min: float,
-) -> tuple[dict[str, np.ndarray], pd.DataFrame, int, pd.DataFrame]:
-    """Recalls per setting, per-object table, target count, and errors with validity."""
+) -> tuple[dict[str, np.ndarray], pd.DataFrame, int, pd.DataFrame, pd.DataFrame]:
+    """Recalls per setting, per-object table, target count, errors with validity, per-visibility table."""
     n_tau = len(taus)
     # Settings, in order: VSD (tau-major, theta-minor), MSSD, MSPD.
     n_vsd = n_tau * len(VSD_THETAS) if with_vsd else 0
-    K = n_vsd + len(MSSD_THRESHOLDS) + len(MSPD_THRESHOLDS)
+    n_mssd = len(MSSD_THRESHOLDS)
+    K = n_vsd + n_mssd + len(MSPD_THRESHOLDS)
     thresholds = np.concatenate([np.tile(VSD_THETAS, n_tau) if with_vsd else np.empty(0), MSSD_THRESHOLDS, MSPD_THRESHOLDS])
     tau_index = np.repeat(np.arange(n_tau), len(VSD_THETAS))
     vsd_cols = [vsd_column(t) for t in taus]
     infos = eval_models_info(dataset)
+    n_bins = len(VISIB_BIN_EDGES) - 1
 
     by_image: dict[tuple[int, int], dict[int, int]] = {}
     for t in targets:
         by_image.setdefault((t.scene_id, t.im_id), {})[t.obj_id] = t.inst_count
-    err_groups = {k: g for k, g in errors.groupby(["scene_id", "im_id", "obj_id"], sort=False)} if len(errors) else {}
+
+    # Error rows as arrays, sorted by (scene, image, object, matching order, gt_id):
+    # the matching order is decreasing score, then est_id (file order).
+    groups: dict[tuple[int, int, int], tuple[int, int]] = {}
+    if len(errors):
+        sc, im, ob = (errors[c].to_numpy(np.int64) for c in ("scene_id", "im_id", "obj_id"))
+        est, gt, score = errors["est_id"].to_numpy(np.int64), errors["gt_id"].to_numpy(np.int64), errors["score"].to_numpy(np.float64)
+        order = np.lexsort((gt, est, -score, ob, im, sc))
+        sc, im, ob, est, gt = sc[order], im[order], ob[order], est[order], gt[order]
+        e_mssd = errors["mssd"].to_numpy(np.float64)[order]
+        e_mspd = errors["mspd"].to_numpy(np.float64)[order]
+        e_vsd = errors[vsd_cols].to_numpy(np.float64)[order] if with_vsd else None
+        new_group = np.ones(len(sc), dtype=bool)
+        new_group[1:] = (sc[1:] != sc[:-1]) | (im[1:] != im[:-1]) | (ob[1:] != ob[:-1])
+        starts = np.flatnonzero(new_group)
+        ends = np.append(starts[1:], len(sc))
+        groups = {(int(sc[a]), int(im[a]), int(ob[a])): (int(a), int(b)) for a, b in zip(starts, ends)}
 
     tps = np.zeros(K, dtype=np.int64)
     obj_tars: dict[int, int] = {}
     obj_tps: dict[int, np.ndarray] = {}
+    bin_tars = np.zeros(n_bins, dtype=np.int64)
+    bin_tps = np.zeros((n_bins, K), dtype=np.int64)
     n_targets = 0
     validity = []
     for (scene_id, im_id), inst_counts in sorted(by_image.items()):
@@ -287,67 +343,88 @@ def _score(
                 f"{dataset.scene_dir(scene_id)}: target image {im_id} lacks consistent entries in "
                 "scene_gt.json and scene_gt_info.json"
             )
-        gt_obj = [g.obj_id for g in gts]
+        gt_obj = np.array([g.obj_id for g in gts], dtype=np.int64)
         fracts = [i.visib_fract for i in gt_infos]
-        valid = valid_gt_mask(gt_obj, fracts, inst_counts, visib_gt_min)
+        gt_bin = visib_bin(fracts) if len(fracts) else np.zeros(0, dtype=np.int64)
+        valid = valid_gt_mask(gt_obj.tolist(), fracts, inst_counts, visib_gt_min)
         for g in np.flatnonzero(valid):
-            o = gt_obj[g]
+            o = int(gt_obj[g])
             obj_tars[o] = obj_tars.get(o, 0) + 1
             obj_tps.setdefault(o, np.zeros(K, dtype=np.int64))
+            bin_tars[gt_bin[g]] += 1
             n_targets += 1
-        for g, (o, f, v) in enumerate(zip(gt_obj, fracts, valid)):
+        for g, (f, v) in enumerate(zip(fracts, valid)):
             validity.append((scene_id, im_id, g, float(f), bool(v)))
+        width = None
         for obj_id in inst_counts:
-            grp = err_groups.get((scene_id, im_id, obj_id))
-            if grp is None:
+            span = groups.get((scene_id, im_id, obj_id))
+            if span is None:
                 continue
-            gt_ids = [g for g, o in enumerate(gt_obj) if o == obj_id]
-            est_order = grp.drop_duplicates("est_id").sort_values(["score", "est_id"], ascending=[False, True], kind="stable")
-            est_ids = est_order["est_id"].to_numpy()
-            E, G = len(est_ids), len(gt_ids)
-            e_pos = {e: i for i, e in enumerate(est_ids)}
-            g_pos = {g: i for i, g in enumerate(gt_ids)}
+            a, b = span
+            gt_ids = np.flatnonzero(gt_obj == obj_id)
+            lut = np.full(len(gt_obj), -1, dtype=np.int64)
+            lut[gt_ids] = np.arange(len(gt_ids))
+            est_g = est[a:b]
+            new_est = np.ones(b - a, dtype=bool)
+            new_est[1:] = est_g[1:] != est_g[:-1]
+            ei = np.cumsum(new_est) - 1
+            gi = lut[gt[a:b]]
+            E, G = int(ei[-1]) + 1, len(gt_ids)
             err = np.full((E, G, K), np.inf)
-            ei = grp["est_id"].map(e_pos).to_numpy()
-            gi = grp["gt_id"].map(g_pos).to_numpy()
             if with_vsd:
-                err[ei, gi, :n_vsd] = grp[vsd_cols].to_numpy()[:, tau_index]
-            diameter = float(infos[obj_id].diameter)
-            width = dataset.scene_camera(scene_id)[im_id].width
-            k0 = n_vsd
-            err[ei, gi, k0 : k0 + len(MSSD_THRESHOLDS)] = (grp["mssd"].to_numpy() / diameter)[:, None]
-            k0 += len(MSSD_THRESHOLDS)
-            err[ei, gi, k0:] = ((640.0 / width) * grp["mspd"].to_numpy())[:, None]
+                err[ei, gi, :n_vsd] = e_vsd[a:b][:, tau_index]
+            if width is None:
+                width = dataset.scene_camera(scene_id)[im_id].width
+            err[ei, gi, n_vsd : n_vsd + n_mssd] = (e_mssd[a:b] / float(infos[obj_id].diameter))[:, None]
+            err[ei, gi, n_vsd + n_mssd :] = ((640.0 / width) * e_mspd[a:b])[:, None]
             matched = greedy_match(err, valid[gt_ids], thresholds)  # (K, E)
-            hits = (matched >= 0).sum(1)
+            ks, es = np.nonzero(matched >= 0)
+            hits = np.bincount(ks, minlength=K)
             tps += hits
             obj_tps.setdefault(obj_id, np.zeros(K, dtype=np.int64))
             obj_tps[obj_id] += hits
+            np.add.at(bin_tps, (gt_bin[gt_ids[matched[ks, es]]], ks), 1)
 
     def split(counts: np.ndarray) -> dict[str, np.ndarray]:
         out = {}
         if with_vsd:
             out["vsd"] = counts[:n_vsd].reshape(n_tau, len(VSD_THETAS))
-        out["mssd"] = counts[n_vsd : n_vsd + len(MSSD_THRESHOLDS)]
-        out["mspd"] = counts[n_vsd + len(MSSD_THRESHOLDS) :]
+        out["mssd"] = counts[n_vsd : n_vsd + n_mssd]
+        out["mspd"] = counts[n_vsd + n_mssd :]
         return out
 
-    recalls = {k: (v / n_targets if n_targets else np.zeros(v.shape)) for k, v in split(tps.astype(np.float64)).items()}
-    per_obj_rows = []
-    for obj_id in sorted(obj_tars):
-        r = {k: v / obj_tars[obj_id] for k, v in split(obj_tps[obj_id].astype(np.float64)).items()}
+    def ar_row(hits: np.ndarray, n: int) -> dict[str, float]:
+        if n == 0:
+            return {"AR_VSD": float("nan"), "AR_MSSD": float("nan"), "AR_MSPD": float("nan"), "AR": float("nan")}
+        r = split(hits.astype(np.float64) / n)
         row = {
-            "obj_id": obj_id,
-            "n_targets": obj_tars[obj_id],
             "AR_VSD": float(r["vsd"].mean()) if with_vsd else float("nan"),
             "AR_MSSD": float(r["mssd"].mean()),
             "AR_MSPD": float(r["mspd"].mean()),
         }
         row["AR"] = float(np.mean([row["AR_VSD"], row["AR_MSSD"], row["AR_MSPD"]])) if with_vsd else float("nan")
-        per_obj_rows.append(row)
-    per_object = pd.DataFrame(per_obj_rows, columns=["obj_id", "n_targets", "AR_VSD", "AR_MSSD", "AR_MSPD", "AR"])
+        return row
+
+    recalls = {k: (v / n_targets if n_targets else np.zeros(v.shape)) for k, v in split(tps.astype(np.float64)).items()}
+    ar_cols = ["AR_VSD", "AR_MSSD", "AR_MSPD", "AR"]
+    per_object = pd.DataFrame(
+        [{"obj_id": o, "n_targets": obj_tars[o], **ar_row(obj_tps[o], obj_tars[o])} for o in sorted(obj_tars)],
+        columns=["obj_id", "n_targets", *ar_cols],
+    )
+    per_visibility = pd.DataFrame(
+        [
+            {
+                "visib_min": float(VISIB_BIN_EDGES[i]),
+                "visib_max": float(VISIB_BIN_EDGES[i + 1]),
+                "n_targets": int(bin_tars[i]),
+                **ar_row(bin_tps[i], int(bin_tars[i])),
+            }
+            for i in range(n_bins)
+        ],
+        columns=["visib_min", "visib_max", "n_targets", *ar_cols],
+    )
     valid_df = pd.DataFrame(validity, columns=["scene_id", "im_id", "gt_id", "gt_visib_fract", "gt_valid"])
-    return recalls, per_object, n_targets, valid_df
+    return recalls, per_object, n_targets, valid_df, per_visibility
 
 
 # ---------------------------------------------------------------------------- entry points
@@ -406,15 +483,20 @@ def evaluate(
         vsd_delta=float(vsd_delta), vsd_taus=tuple(taus.tolist()), max_sym_disc_step=max_sym_disc_step, compute_vsd=with_vsd
     )
     jobs = _image_jobs(dataset, ests)
+    t_prepare = _time.perf_counter() - t_start
     t_err = _time.perf_counter()
-    rows = _compute_errors(dataset, jobs, params, n_workers, progress)
+    rows, timing = _compute_errors(dataset, jobs, params, n_workers, progress)
     t_err = _time.perf_counter() - t_err
+    t_match = _time.perf_counter()
     errors = _errors_frame(rows, taus)
 
-    recalls, per_object, n_targets, valid_df = _score(dataset, target_list, errors, taus, with_vsd, visib_gt_min)
+    recalls, per_object, n_targets, valid_df, per_visibility = _score(
+        dataset, target_list, errors, taus, with_vsd, visib_gt_min
+    )
     errors = errors.merge(valid_df, on=["scene_id", "im_id", "gt_id"], how="left")
     order = ["scene_id", "im_id", "obj_id", "est_id", "gt_id", "score", "gt_visib_fract", "gt_valid", "mssd", "mspd"]
     errors = errors[order + [c for c in errors.columns if c not in order]]
+    t_match = _time.perf_counter() - t_match
 
     ar_mssd = float(recalls["mssd"].mean())
     ar_mspd = float(recalls["mspd"].mean())
@@ -436,9 +518,31 @@ def evaluate(
         "n_target_images": len(target_images),
         "eval_seconds": round(_time.perf_counter() - t_start, 3),
         "error_seconds": round(t_err, 3),
+        "timing": _timing_summary(timing, t_prepare, t_match, t_err, n_workers if len(jobs) > 1 else 1),
         "notes": notes,
     }
-    return Scores(summary, errors, per_object, recalls)
+    return Scores(summary, errors, per_object, recalls, per_visibility)
+
+
+def _timing_summary(parts: dict[str, float], prepare: float, match: float, errors_wall: float, n_workers: int) -> dict[str, Any]:
+    """Seconds per part of ``evaluate`` (rounded to ms).
+
+    prepare (main process: checking and selecting the estimates, reading the GT
+    annotations); load (depth images, models and their symmetries), vsd_render,
+    vsd_compare, mssd, mspd: summed over the worker processes, so with several workers
+    their sum exceeds errors_wall (the wall time of the error computation, including
+    starting the workers); match (errors table, greedy matching, recalls, breakdowns);
+    n_renders: model depth renders; n_workers.
+    """
+    out: dict[str, Any] = {"prepare": prepare}
+    for k in ("load", "vsd_render", "vsd_compare", "mssd", "mspd"):
+        out[k] = parts.get(k, 0.0)
+    out["errors_wall"] = errors_wall
+    out["match"] = match
+    out = {k: round(float(v), 3) for k, v in out.items()}
+    out["n_renders"] = int(parts.get("n_renders", 0))
+    out["n_workers"] = int(n_workers)
+    return out
 
 
 def _atomic_parquet(df: pd.DataFrame, path: Path) -> None:
@@ -484,8 +588,10 @@ def score_results_file(
     each atomically.
     """
     dataset_root = Path(dataset_root)
+    t0 = _time.perf_counter()
     dataset = BopDataset(dataset_root, split, split_type)
     results = read_results_csv(results_csv)
+    t_read = _time.perf_counter() - t0
     delta = bop_vsd_delta(dataset.name) if vsd_delta is None else float(vsd_delta)
     scores = evaluate(
         results,
@@ -498,9 +604,14 @@ def score_results_file(
     scores.summary["results_file"] = str(results_csv)
     scores.summary["dataset"] = str(dataset_root)
     scores.summary["split"] = split
+    timing = scores.summary.setdefault("timing", {})
+    timing["read"] = round(t_read, 3)
     if out_dir is not None:
         out = Path(out_dir)
+        t0 = _time.perf_counter()
         _atomic_parquet(scores.errors, out / "errors.parquet")
+        # The time to write scores.json itself (milliseconds) cannot be in it.
+        timing["write"] = round(_time.perf_counter() - t0, 3)
         atomic_write_text(out / "scores.json", json.dumps(scores.to_json(), indent=1) + "\n")
     return scores
 
@@ -514,6 +625,7 @@ def load_scores(out_dir: Path | str) -> tuple[dict[str, Any], pd.DataFrame]:
 __all__ = [
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
+    "VISIB_BIN_EDGES",
     "VSD_THETAS",
     "Scores",
     "bop_vsd_delta",

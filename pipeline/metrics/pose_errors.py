@@ -41,13 +41,40 @@ def probe_indices(pts: np.ndarray, n: int = N_PROBES) -> np.ndarray:
     return np.asarray(idx)
 
 
+def hull_indices(pts: np.ndarray) -> np.ndarray:
+    """Sorted indices of the vertices of the convex hull of ``pts`` (N, 3); all points
+    when the hull is degenerate (flat or too few points).
+
+    MSSD over these vertices equals MSSD over all points: per symmetry variant the
+    distance ``|A p + b|`` is a convex function of the model point p, so its maximum
+    over the model is attained at a hull vertex. (MSPD divides by depth, so it has no
+    such property; there the hull vertices only give a tight lower bound.)
+    """
+    pts = np.asarray(pts, dtype=np.float64)
+    if len(pts) < 5:
+        return np.arange(len(pts))
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return np.sort(ConvexHull(pts).vertices)
+    except (QhullError, ValueError):
+        return np.arange(len(pts))
+
+
 def _min_of_max(
-    dists: Callable[[np.ndarray, np.ndarray | slice], np.ndarray], n_syms: int, n_pts: int, probes: np.ndarray
+    dists: Callable[[np.ndarray, np.ndarray | slice], np.ndarray],
+    n_syms: int,
+    n_pts: int,
+    probes: np.ndarray,
+    mid: np.ndarray | None = None,
 ) -> float:
     """``min_s max_v dists(s, v)`` by branch and bound.
 
     dists(sym_idx (k,), pts) -> (k, m) distances for the given variants and points
-    (``pts`` an index array or ``slice(None)`` for all points).
+    (``pts`` an index array or ``slice(None)`` for all points). The maxima over
+    ``probes`` and then over ``mid`` (optional, a larger subset such as the hull
+    vertices) are lower bounds of a variant's value; a variant is evaluated on all
+    points only while its bounds are below the best value found.
     """
     if n_syms <= 2 or len(probes) == 0 or len(probes) >= n_pts:
         best = np.inf
@@ -61,14 +88,29 @@ def _min_of_max(
         s = np.arange(a, min(a + step, n_syms))
         lower[s] = dists(s, probes).max(1)
     order = np.argsort(lower, kind="stable")
-    best = np.inf
-    step = max(1, min(16, _BLOCK // n_pts))
-    for a in range(0, n_syms, step):
+    if mid is not None and not (len(probes) < len(mid) < n_pts):
+        mid = None
+    # The variant with the lowest bound is evaluated alone first: it is usually the
+    # minimum, and then its value prunes most of the others.
+    best = float(dists(order[:1], slice(None)).max())
+    if mid is None:
+        step = max(1, min(16, _BLOCK // n_pts))
+    else:
+        step = max(1, min(64, _BLOCK // len(mid)))
+    for a in range(1, n_syms, step):
         s = order[a : a + step]
         s = s[lower[s] < best]
         if len(s) == 0:
             break  # bounds are sorted: no later variant can beat ``best``
-        best = min(best, float(dists(s, slice(None)).max(1).min()))
+        if mid is None:
+            best = min(best, float(dists(s, slice(None)).max(1).min()))
+            continue
+        # Tighter bounds on the subset, then all points in increasing order of them.
+        bound = dists(s, mid).max(1)
+        for j in np.argsort(bound, kind="stable"):
+            if bound[j] >= best:
+                break
+            best = min(best, float(dists(s[j : j + 1], slice(None)).max()))
     return best
 
 
@@ -100,16 +142,21 @@ def mssd(
     R_*: (3, 3), t_*: (3,) mm, model-to-camera. pts: (V, 3) model vertices in mm.
     sym_R: (S, 3, 3), sym_t: (S, 3) mm from :func:`symmetry_transformations`
     (identity only when omitted). probes: :func:`probe_indices` of ``pts`` (computed
-    when omitted; pass them to save time on repeated calls).
+    when omitted; pass them to save time on repeated calls). Passing only the convex
+    hull vertices of the model as ``pts`` gives the same value (see
+    :func:`hull_indices`), much faster.
     """
     R_e, t_e, R_g, t_g, pts, sym_R, sym_t = _prepare(R_e, t_e, R_g, t_g, pts, sym_R, sym_t)
     # |R_e p + t_e - R_g(R_s p + t_s) - t_g| = |q - (R_s p + t_s)| with q in the model
     # frame of the GT pose (rotations preserve lengths).
     q = (pts @ R_e.T + (t_e - t_g)) @ R_g
+    pts_T, q_T = np.ascontiguousarray(pts.T), np.ascontiguousarray(q.T)  # (3, V)
+    sym_R_rows = sym_R.reshape(-1, 3)  # (3 S, 3): one matrix product for many variants
 
     def dists(s: np.ndarray, v: np.ndarray | slice) -> np.ndarray:
-        y = pts[v][None] @ sym_R[s].transpose(0, 2, 1) + sym_t[s][:, None, :]
-        return np.sqrt(((q[v][None] - y) ** 2).sum(-1))
+        rows = (3 * s[:, None] + np.arange(3)).reshape(-1)
+        y = (sym_R_rows[rows] @ pts_T[:, v]).reshape(len(s), 3, -1) + sym_t[s][:, :, None]
+        return np.sqrt(((q_T[:, v][None] - y) ** 2).sum(1))
 
     if probes is None:
         probes = probe_indices(pts) if len(sym_R) > 2 else np.arange(0)
@@ -133,24 +180,29 @@ def mspd(
     sym_R: np.ndarray | None = None,
     sym_t: np.ndarray | None = None,
     probes: np.ndarray | None = None,
+    mid: np.ndarray | None = None,
 ) -> float:
     """Maximum Symmetry-aware Projection Distance in pixels.
 
-    Arguments as :func:`mssd`, plus the intrinsics ``K`` (3, 3).
+    Arguments as :func:`mssd`, plus the intrinsics ``K`` (3, 3), and ``mid``: optional
+    indices of a subset of ``pts`` (e.g. :func:`hull_indices`) that bounds the
+    variants between the probes and all points (same value, less work).
     """
     R_e, t_e, R_g, t_g, pts, sym_R, sym_t = _prepare(R_e, t_e, R_g, t_g, pts, sym_R, sym_t)
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
     proj_e = project(pts, K, R_e, t_e)
     # Homogeneous image point of variant s: A_s p + b_s, A_s = K R_g R_s, b_s = K (R_g t_s + t_g).
     KR = K @ R_g
-    A = KR[None] @ sym_R
+    A_rows = (KR[None] @ sym_R).reshape(-1, 3)  # (3 S, 3): one matrix product for many variants
     b = sym_t @ KR.T + K @ t_g
+    pts_T, proj_T = np.ascontiguousarray(pts.T), np.ascontiguousarray(proj_e.T)  # (3, V), (2, V)
 
     def dists(s: np.ndarray, v: np.ndarray | slice) -> np.ndarray:
-        x = pts[v][None] @ A[s].transpose(0, 2, 1) + b[s][:, None, :]
-        uv = x[..., :2] / x[..., 2:3]
-        return np.sqrt(((uv - proj_e[v][None]) ** 2).sum(-1))
+        rows = (3 * s[:, None] + np.arange(3)).reshape(-1)
+        x = (A_rows[rows] @ pts_T[:, v]).reshape(len(s), 3, -1) + b[s][:, :, None]
+        uv = x[:, :2] / x[:, 2:3]
+        return np.sqrt(((uv - proj_T[:, v][None]) ** 2).sum(1))
 
     if probes is None:
         probes = probe_indices(pts) if len(sym_R) > 2 else np.arange(0)
-    return _min_of_max(dists, len(sym_R), len(pts), probes)
+    return _min_of_max(dists, len(sym_R), len(pts), probes, mid)

@@ -8,6 +8,8 @@ VSD also works on shiny objects that the sensor does not see.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 #: Misalignment tolerances of BOP19, as fractions of the object diameter. Built with
@@ -83,28 +85,78 @@ def vsd(
     delta: float,
     diameter: float,
     taus: np.ndarray = VSD_TAUS,
+    x0: int = 0,
+    y0: int = 0,
 ) -> np.ndarray:
-    """VSD errors (T,) from full-size depth images (H, W) in mm.
+    """VSD errors (T,) from aligned depth images (h, w) in mm.
 
     depth_est / depth_gt are renders of the model alone (0 off the object). Only the
     bounding box of the two renders matters (visibility needs a rendered surface), so
-    the distances are computed on that crop.
+    the distances are computed on that crop. ``(x0, y0)``: image position of the
+    images' top-left pixel when they are crops of the image (0, 0 for full images).
     """
     rendered = (depth_est > 0) | (depth_gt > 0)
     rows = np.flatnonzero(rendered.any(1))
     if len(rows) == 0:
         return np.ones(len(taus))
     cols = np.flatnonzero(rendered.any(0))
-    y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    crop = (slice(y0, y1), slice(x0, x1))
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    crop = (slice(r0, r1), slice(c0, c1))
     return vsd_from_distances(
-        depth_to_distance(depth_test[crop], K, x0, y0),
-        depth_to_distance(depth_est[crop], K, x0, y0),
-        depth_to_distance(depth_gt[crop], K, x0, y0),
+        depth_to_distance(depth_test[crop], K, x0 + c0, y0 + r0),
+        depth_to_distance(depth_est[crop], K, x0 + c0, y0 + r0),
+        depth_to_distance(depth_gt[crop], K, x0 + c0, y0 + r0),
         delta,
         taus,
         diameter,
     )
+
+
+class Crop(NamedTuple):
+    """A depth render (h, w) float32 mm covering image pixels [y0, y0+h) x [x0, x0+w)."""
+
+    depth: np.ndarray
+    x0: int
+    y0: int
+
+
+def vsd_crops(
+    depth_test: np.ndarray,
+    est: Crop | None,
+    gt: Crop | None,
+    K: np.ndarray,
+    delta: float,
+    diameter: float,
+    taus: np.ndarray = VSD_TAUS,
+) -> np.ndarray:
+    """VSD errors (T,) from the full test depth (H, W) and the two renders as crops.
+
+    Same value as :func:`vsd` on the full-size renders: only pixels with a rendered
+    surface can be visible, so both crops are pasted into their union box (clipped to
+    the image) and compared there. ``None`` is a render with no pixel in the image.
+    """
+    H, W = depth_test.shape
+    crops = [c for c in (est, gt) if c is not None and c.depth.size]
+    if not crops:
+        return np.ones(len(taus))
+    x0 = max(0, min(c.x0 for c in crops))
+    y0 = max(0, min(c.y0 for c in crops))
+    x1 = min(W, max(c.x0 + c.depth.shape[1] for c in crops))
+    y1 = min(H, max(c.y0 + c.depth.shape[0] for c in crops))
+    if x1 <= x0 or y1 <= y0:
+        return np.ones(len(taus))
+
+    def paste(c: Crop | None) -> np.ndarray:
+        out = np.zeros((y1 - y0, x1 - x0), dtype=np.float32)
+        if c is None or not c.depth.size:
+            return out
+        cx0, cy0 = max(c.x0, x0), max(c.y0, y0)
+        cx1, cy1 = min(c.x0 + c.depth.shape[1], x1), min(c.y0 + c.depth.shape[0], y1)
+        if cx1 > cx0 and cy1 > cy0:
+            out[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0] = c.depth[cy0 - c.y0 : cy1 - c.y0, cx0 - c.x0 : cx1 - c.x0]
+        return out
+
+    return vsd(depth_test[y0:y1, x0:x1], paste(est), paste(gt), K, delta, diameter, taus, x0=x0, y0=y0)
 
 
 def sphere_projections_overlap(radius: float, t1: np.ndarray, t2: np.ndarray) -> bool:

@@ -1,0 +1,267 @@
+"""Time the BOP19 scorer on a large synthetic results file (run by hand).
+
+    .venv/bin/python benchmarks/score_speed.py [--dataset-root DIR] [--workers 1 2] [--repeat 3]
+
+What it builds. On the ``bench`` synthetic dataset (84 images, 540 targets, 561 valid
+GT instances; default: the one in ``cache/synthbench/synth/*/dataset/synthbench``, else
+make one with ``freeze synth DIR --name synthbench --preset bench``) it writes a BOP
+results CSV with, per GT instance of every target: two near-GT poses (0.5-3 deg /
+1-3 mm and 5-10 deg / 5-15 mm), an exact duplicate of the first with a lower score,
+a pose turned by a declared symmetry (or a 180 deg flip), a random rotation at the
+right place, a 30-80 mm lateral shift, a 2-5 % depth shift, a pose far away (so VSD
+takes the toolkit's no-overlap shortcut) and a random pose in the view frustum; plus
+5 estimates per image for objects that are not targets of that image and 100
+estimates for images that are not targets (both ignored, as in BOP). One time per
+image. About 5,500 estimates (``--per-gt`` scales it).
+
+What it times. ``score_results_file`` (read the CSV, select, compute every pose error,
+match, recall, write ``errors.parquet`` + ``scores.json``), in-process, with each
+worker count of ``--workers``, alternating the configurations ``--repeat`` times so
+that they see the same machine load, and reports medians. Two target sets:
+
+- ``official``: the dataset's ``test_targets_bop19.json``. Only the top ``inst_count``
+  estimates per target are scored (BOP19 rule), so ~560 of the ~5,500 estimates reach
+  the error computation: this is what scoring a method's results costs.
+- ``all``: the same file with every target's ``inst_count`` raised to the number of
+  estimates of that (image, object), so every estimate of a target (~5,000) is scored
+  against every GT instance of its object: the scorer's worst case per estimate
+  (GT instances under 10 % visibility become valid targets too).
+
+Reported per configuration: wall time (median), estimates per second (estimates in
+the file / wall, and scored estimates / wall), speed-up over the first worker count,
+and the split from ``summary["timing"]``: in the main process, reading the CSV,
+selecting the estimates and reading the GT annotations, matching + recalls +
+breakdowns, writing ``errors.parquet``; in the error computation (seconds summed over
+the worker processes, so with 2 workers their sum exceeds its wall time, which
+includes starting the workers): loading depth images and models, VSD rendering
+(model depth, in crops around the object), VSD comparison, MSSD, MSPD. Also the
+number of model renders. Writes the tables to ``benchmarks/results/score_speed.md``.
+The machine has 2 cores shared with other work: compare the ratios measured in one
+run, not absolute numbers across runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    axis = np.asarray(axis, float)
+    return Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+
+
+def _random_rot(rng: np.random.Generator) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
+
+
+def _small_rot(rng: np.random.Generator, lo_deg: float, hi_deg: float) -> np.ndarray:
+    return _rot(rng.normal(size=3), np.deg2rad(rng.uniform(lo_deg, hi_deg)))
+
+
+def build_estimates(root: Path, per_gt_scale: int, seed: int = 0) -> tuple[list[dict], dict[tuple[int, int, int], int]]:
+    """Estimates (dicts for ``write_results_csv``) and the count per (scene, image, object) of targets."""
+    from pipeline.bop import BopDataset
+    from pipeline.metrics.calc_errors import eval_models_info
+
+    ds = BopDataset(root)
+    rng = np.random.default_rng(seed)
+    infos = eval_models_info(ds)
+    targets = ds.targets()
+    by_image: dict[tuple[int, int], set[int]] = {}
+    for t in targets:
+        by_image.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)
+    all_objs = sorted(infos)
+    rows: list[dict] = []
+    counts: dict[tuple[int, int, int], int] = {}
+    for (scene_id, im_id), objs in sorted(by_image.items()):
+        time_s = float(np.round(rng.uniform(0.5, 3.0), 3))
+        cam = ds.scene_camera(scene_id)[im_id]
+        K = cam.K
+
+        def add(obj_id: int, score: float, R: np.ndarray, t: np.ndarray) -> None:
+            rows.append(dict(scene_id=scene_id, im_id=im_id, obj_id=obj_id, score=float(score), R=R, t=t, time=time_s))
+            if obj_id in objs:
+                counts[(scene_id, im_id, obj_id)] = counts.get((scene_id, im_id, obj_id), 0) + 1
+
+        for gt in ds.scene_gt(scene_id)[im_id]:
+            if gt.obj_id not in objs:
+                continue
+            info = infos[gt.obj_id]
+            d = float(info.diameter)
+            R, t = gt.R, gt.t
+            for _ in range(per_gt_scale):
+                R1 = _small_rot(rng, 0.5, 3.0) @ R
+                t1 = t + rng.normal(size=3) * rng.uniform(1, 3)
+                add(gt.obj_id, rng.uniform(0.9, 1.0), R1, t1)  # near GT
+                add(gt.obj_id, rng.uniform(0.8, 0.9), R1, t1.copy())  # duplicate, lower score
+                add(gt.obj_id, rng.uniform(0.7, 0.8), _small_rot(rng, 5, 10) @ R, t + rng.normal(size=3) * 8)
+                if info.symmetries_discrete:
+                    S = np.asarray(info.symmetries_discrete[rng.integers(len(info.symmetries_discrete))], float).reshape(4, 4)
+                    Rs, ts = R @ S[:3, :3], R @ S[:3, 3] + t
+                elif info.symmetries_continuous:
+                    c = info.symmetries_continuous[0]
+                    Rs, ts = R @ _rot(c["axis"], rng.uniform(0, 2 * np.pi)), t.copy()
+                else:
+                    Rs, ts = R @ _rot([0, 0, 1], np.pi), t.copy()
+                add(gt.obj_id, rng.uniform(0.6, 0.7), Rs, ts)  # symmetric variant (or a flip)
+                add(gt.obj_id, rng.uniform(0.5, 0.6), _random_rot(rng), t + rng.normal(size=3) * 5)  # wrong rotation
+                shift = np.append(rng.normal(size=2), 0.0)
+                add(gt.obj_id, rng.uniform(0.4, 0.5), R, t + shift / np.linalg.norm(shift) * rng.uniform(30, 80))
+                add(gt.obj_id, rng.uniform(0.4, 0.5), R, t * (1 + rng.choice([-1, 1]) * rng.uniform(0.02, 0.05)))
+                add(gt.obj_id, rng.uniform(0.2, 0.3), R, t + np.array([4 * d, 3 * d, 0.0]))  # far: no overlap
+                z = rng.uniform(400, 1200)
+                uv = rng.uniform([0, 0], [cam.width, cam.height])
+                ray = np.linalg.solve(K, np.append(uv, 1.0))
+                add(gt.obj_id, rng.uniform(0.0, 0.3), _random_rot(rng), ray * z)  # random in the frustum
+        others = [o for o in all_objs if o not in objs]
+        for _ in range(5 * per_gt_scale):
+            if others:
+                add(int(rng.choice(others)), rng.uniform(0, 1), _random_rot(rng), np.array([0.0, 0.0, 800.0]))
+    last = max(by_image)
+    for k in range(100 * per_gt_scale):  # images that are not targets
+        rows.append(dict(scene_id=last[0], im_id=100000 + k % 10, obj_id=all_objs[k % len(all_objs)], score=0.5,
+                         R=_random_rot(rng), t=np.array([0.0, 0.0, 700.0]), time=1.0))
+    return rows, counts
+
+
+def write_all_targets(root: Path, counts: dict[tuple[int, int, int], int], path: Path) -> None:
+    """The dataset's targets with inst_count raised so that every estimate of a target is scored."""
+    from pipeline.bop import BopDataset
+
+    out = []
+    for t in BopDataset(root).targets():
+        n = max(t.inst_count, counts.get((t.scene_id, t.im_id, t.obj_id), 0))
+        out.append({"scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "inst_count": n})
+    path.write_text(json.dumps(out))
+
+
+TIMING_KEYS = [
+    ("read", "read CSV"),
+    ("prepare", "select + GT"),
+    ("load", "depth + models"),
+    ("vsd_render", "VSD render"),
+    ("vsd_compare", "VSD compare"),
+    ("mssd", "MSSD"),
+    ("mspd", "MSPD"),
+    ("errors_wall", "errors (wall)"),
+    ("match", "match + recall"),
+    ("write", "write errors"),
+]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset-root", type=Path, default=None)
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--targets", nargs="+", default=["official", "all"], choices=["official", "all"])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--per-gt", type=int, default=1, help="multiply the estimates per GT instance")
+    ap.add_argument("--workdir", type=Path, default=None, help="keep the results file and outputs here")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "score_speed.md")
+    ap.add_argument("--label", default="", help="free text put in the Markdown heading")
+    args = ap.parse_args()
+
+    import warnings
+
+    from pipeline.bop import write_results_csv
+    from pipeline.metrics import score_results_file
+
+    root = args.dataset_root
+    if root is None:
+        found = sorted(glob.glob(str(ROOT / "cache" / "synthbench" / "synth" / "*" / "dataset" / "synthbench")))
+        if not found:
+            raise SystemExit("no bench dataset: run `freeze synth DIR --name synthbench --preset bench` and pass --dataset-root DIR/synthbench")
+        root = Path(found[0])
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="score_speed-"))
+    work.mkdir(parents=True, exist_ok=True)
+
+    rows, counts = build_estimates(root, args.per_gt)
+    csv = work / "bench_synthbench-test.csv"
+    write_results_csv(csv, rows)
+    targets = {"official": None, "all": work / "targets_all.json"}
+    write_all_targets(root, counts, targets["all"])
+    print(f"{len(rows)} estimates ({sum(counts.values())} for targets) -> {csv}")
+
+    configs = [(tg, w) for tg in args.targets for w in args.workers]
+    walls: dict[tuple[str, int], list[float]] = {c: [] for c in configs}
+    splits: dict[tuple[str, int], list[dict]] = {c: [] for c in configs}
+    summaries: dict[tuple[str, int], dict] = {}
+    for rep in range(args.repeat):
+        for tg, w in configs:
+            out = work / f"out-{tg}-{w}"
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                t0 = time.perf_counter()
+                s = score_results_file(csv, root, targets_file=targets[tg], out_dir=out, n_workers=w)
+                wall = time.perf_counter() - t0
+            walls[(tg, w)].append(wall)
+            splits[(tg, w)].append(s.summary.get("timing", {}))
+            summaries[(tg, w)] = s.summary
+            print(f"[{rep + 1}/{args.repeat}] targets={tg} workers={w}: {wall:.1f} s  AR={s.summary['AR']:.4f}", flush=True)
+
+    # The same errors whatever the worker count.
+    for tg in args.targets:
+        ars = {summaries[(tg, w)]["AR"] for w in args.workers}
+        assert len(ars) == 1, f"AR differs between worker counts: {ars}"
+
+    lines = [
+        f"# Scorer speed{(' — ' + args.label) if args.label else ''}",
+        "",
+        f"`benchmarks/score_speed.py --repeat {args.repeat}` on `{root.name}` ({platform.node()}, "
+        f"{time.strftime('%Y-%m-%d %H:%M')}); medians of {args.repeat} alternating runs.",
+        "",
+        f"Results file: {len(rows)} estimates, {sum(counts.values())} of them for targets.",
+        "",
+        "| targets | workers | scored est. | wall s | est./s (file) | scored est./s | speed-up | AR |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for tg in args.targets:
+        base = statistics.median(walls[(tg, args.workers[0])])
+        for w in args.workers:
+            med = statistics.median(walls[(tg, w)])
+            s = summaries[(tg, w)]
+            lines.append(
+                f"| {tg} | {w} | {s['n_evaluated']} | {med:.1f} | {len(rows) / med:.0f} | {s['n_evaluated'] / med:.0f} "
+                f"| {base / med:.2f}x | {s['AR']:.4f} |"
+            )
+    if any(sp for v in splits.values() for sp in v):
+        lines += [
+            "",
+            "Time split (s, medians; worker parts summed over worker processes):",
+            "",
+            "| targets | workers | " + " | ".join(name for _, name in TIMING_KEYS) + " | wall |",
+            "|---|---|" + "---|" * (len(TIMING_KEYS) + 1),
+        ]
+        for tg, w in configs:
+            vals = [statistics.median([sp.get(k, float("nan")) for sp in splits[(tg, w)]]) for k, _ in TIMING_KEYS]
+            lines.append(f"| {tg} | {w} | " + " | ".join(f"{v:.2f}" for v in vals) + f" | {statistics.median(walls[(tg, w)]):.1f} |")
+        extra = summaries[configs[0]].get("timing", {})
+        if "n_renders" in extra:
+            lines += ["", "Renders per run: " + ", ".join(
+                f"{tg}: {summaries[(tg, args.workers[0])]['timing'].get('n_renders')}" for tg in args.targets)]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"written {args.out}")
+
+
+if __name__ == "__main__":
+    main()
