@@ -17,7 +17,7 @@ import pandas as pd
 from pipeline.plan import DatasetPlan, obj_item, item_id
 from pipeline.store import item_seed, load_arrays, publish, read_table, write_table
 
-CODE_VERSION = 1
+CODE_VERSION = 2
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:

@@ -150,3 +150,29 @@ def test_register_rejects_mismatched_inputs():
         register(np.zeros((10, 3)), np.zeros((9, 4)), np.zeros((5, 3)), np.zeros((5, 4)), 1.0)
     with pytest.raises(ValueError, match="extra|Extra"):
         RansacParams(threshold=3)
+
+
+def test_apply_pca_zeroes_components_without_signal():
+    # A textureless object: visual features constant up to 1e-4 noise; the scene adds an
+    # offset. Every component is below the noise floor, so the visual part vanishes and
+    # the fused features equal the normalised geometric part on both sides.
+    rng = np.random.default_rng(3)
+    model_vis = 0.01 + 1e-4 * rng.normal(size=(500, 30))
+    basis = fit_pca(model_vis, 64)
+    assert not basis.informative
+    scene_vis = 0.05 + 1e-3 * rng.normal(size=(40, 30))
+    np.testing.assert_array_equal(apply_pca(basis, scene_vis), 0.0)
+    g = rng.normal(size=(40, 66))
+    f = fuse(g, apply_pca(basis, scene_vis))
+    np.testing.assert_allclose(f[:, :66], g / np.linalg.norm(g, axis=1, keepdims=True), rtol=1e-5)
+    np.testing.assert_array_equal(f[:, 66:], 0.0)
+    # Known answer: total variance 1e-4 + 1e-6 is above a 1e-5 floor, so every component
+    # is kept, even the weak third one; with the floor at 1e-3 the basis is not informative.
+    X = rng.normal(size=(20000, 3)) * np.array([1e-2, 1e-3, 1e-3])
+    b = fit_pca(X, 3, min_variance=1e-5)
+    assert b.informative
+    np.testing.assert_allclose(apply_pca(b, X) @ b.components, X - b.mean, atol=1e-6)
+    assert not fit_pca(X, 3, min_variance=1e-3).informative
+    np.testing.assert_array_equal(apply_pca(fit_pca(X, 3, min_variance=1e-3), X), 0.0)
+    # min_variance=0 keeps everything (the paper's plain PCA), even constant features.
+    assert fit_pca(np.ones((10, 4)), 4, min_variance=0.0).informative

@@ -4,6 +4,21 @@ Visual features are reduced with a PCA fitted on the model's lifted visual featu
 (and applied to the scene's with the same basis), then each part is L2-normalised on
 its own and the parts are concatenated, so that each contributes equally to
 Euclidean / cosine feature distances.
+
+When the model's visual features have (almost) no variance at all, as for an object
+without visual texture under a colour descriptor, they carry no signal: the projection
+of a scene feature on the basis is sensor noise or a colour offset, and row-wise L2
+normalisation would blow that noise up to the same weight as the geometric part.
+:func:`apply_pca` therefore returns zeros when the total explained variance is below
+``PcaBasis.min_variance`` (absolute, in squared feature units); the visual part of the
+fused features is then zero on both sides and matching falls back to the geometric
+part. Textured objects keep every component (zeroing only their weak components, at a
+per-component floor of 1e-5, cost a partly textured object 0.83 -> 0.61 recall).
+Measured on the synthetic ``bench`` dataset (FPFH + colortex, 519 targets): the grey
+objects' lifted colortex features have a total standard deviation of 0.0005-0.0011
+against 0.13-0.38 for the textured ones; at true correspondences the cosine similarity
+of their normalised visual parts was about -0.2 (median), and zeroing them raised the
+MSSD-based recall of those objects from 0.27 to 0.37 (two RANSAC seeds).
 """
 
 from __future__ import annotations
@@ -15,20 +30,38 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PcaBasis:
-    """mean (C,), components (V, C) orthonormal rows, explained_variance (V,), float32."""
+    """mean (C,), components (V, C) orthonormal rows, explained_variance (V,), float32.
+
+    min_variance: when the total explained variance is below it, :func:`apply_pca`
+    returns zeros (the features carry no signal; see the module docstring)."""
 
     mean: np.ndarray
     components: np.ndarray
     explained_variance: np.ndarray
+    min_variance: float = 0.0
+
+    @property
+    def informative(self) -> np.ndarray:
+        """Whether the features carry signal: total explained variance >= ``min_variance``."""
+        return bool(float(np.sum(self.explained_variance, dtype=np.float64)) >= self.min_variance)
 
     @property
     def n_components(self) -> int:
         return int(self.components.shape[0])
 
 
-def fit_pca(model_visual: np.ndarray, n_components: int = 64) -> PcaBasis:
+# Default noise floor of fit_pca on the total variance, in squared feature units: a
+# standard deviation of about 0.003, e.g. 0.3 % chromaticity for colortex (grey synthetic
+# objects: 3e-7 to 1.2e-6; textured ones: 0.017 to 0.14). DINOv2-like features have
+# variances of order 1 along their leading components.
+MIN_COMPONENT_VARIANCE = 1e-5
+
+
+def fit_pca(model_visual: np.ndarray, n_components: int = 64, min_variance: float = MIN_COMPONENT_VARIANCE) -> PcaBasis:
     """PCA of (N, C) features with V = min(n_components, C, N) components.
 
+    If the total explained variance is below ``min_variance``, :func:`apply_pca` returns
+    zeros (0 disables this).
     Component signs are fixed (largest-magnitude loading positive) so that the basis is
     reproducible across runs and library versions.
     """
@@ -49,15 +82,21 @@ def fit_pca(model_visual: np.ndarray, n_components: int = 64) -> PcaBasis:
     var = np.maximum(evals[order], 0.0)
     signs = np.sign(comps[np.arange(V), np.abs(comps).argmax(axis=1)])
     comps = comps * np.where(signs == 0, 1.0, signs)[:, None]
-    return PcaBasis(mean.astype(np.float32), comps.astype(np.float32), var.astype(np.float32))
+    if min_variance < 0:
+        raise ValueError(f"fit_pca: min_variance must be >= 0, got {min_variance}")
+    return PcaBasis(mean.astype(np.float32), comps.astype(np.float32), var.astype(np.float32), float(min_variance))
 
 
 def apply_pca(basis: PcaBasis, feats: np.ndarray) -> np.ndarray:
-    """Project (N, C) features on the basis: (N, V) float32."""
+    """Project (N, C) features on the basis: (N, V) float32; all zero when the basis is
+    not ``informative``."""
     X = np.asarray(feats, dtype=np.float32)
     if X.ndim != 2 or X.shape[1] != basis.mean.shape[0]:
         raise ValueError(f"apply_pca: expected (N, {basis.mean.shape[0]}) features, got shape {X.shape}")
-    return (X - basis.mean) @ basis.components.T
+    Y = (X - basis.mean) @ basis.components.T
+    if not basis.informative:
+        Y[:] = 0.0
+    return Y
 
 
 def l2_normalise(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
