@@ -122,6 +122,14 @@ class DatasetPlan:
 
         return BopDataset(self.root, split=self.dataset.split, split_type=self.dataset.split_type)
 
+    def model_info(self, bop, obj_id: int):
+        """``bop.models_info()[obj_id]``, failing with the file and the known ids."""
+        infos = bop.models_info()
+        if obj_id not in infos:
+            raise ValueError(f"{bop.models_info_path()}: dataset '{self.name}' has no object {obj_id} "
+                           f"(objects: {', '.join(map(str, sorted(infos)))})")
+        return infos[obj_id]
+
 
 def _encoder_manifest(name: str, kind: str) -> cfg.EncoderManifest:
     man = cfg.load_encoder_manifest(name)

@@ -20,7 +20,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     sp = plan["render_templates"]
     p = plan.run.stages.render_templates
     bop = plan.bop()
-    info = bop.models_info()[obj_id]
+    info = plan.model_info(bop, obj_id)
     mesh = bop.load_model(obj_id)
     views = template_views(p.n_views, info.diameter, p.image_size, fill=p.fill, distance_factor=p.distance_factor)
     with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
