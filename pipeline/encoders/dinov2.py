@@ -1,0 +1,423 @@
+"""``dinov2``: dense DINOv2 patch tokens (visual encoder), run through ``transformers``.
+
+Models: ``vits14``, ``vitb14``, ``vitl14``, ``vitg14`` and their register variants
+``vits14_reg`` ... (``Dinov2WithRegistersModel``, 4 register tokens). Weights are never
+downloaded; ``weights`` is one of
+
+- a local directory in the Hugging Face layout (``config.json`` plus
+  ``model.safetensors`` or ``pytorch_model.bin``, e.g. a copy of
+  ``facebook/dinov2-small``), loaded with ``local_files_only=True``; its
+  ``config.json`` must agree with ``model`` (width, depth, registers);
+- an official state-dict file ``dinov2_vits14_pretrain.pth`` (or ``..._reg4_...``) as
+  published by facebookresearch/dinov2, whose parameter names are mapped onto the
+  transformers model and loaded strictly;
+- ``None`` (default): the official file looked up in the torch hub cache,
+  ``torch.hub.get_dir()/checkpoints/`` (``$TORCH_HOME/hub/checkpoints``, by default
+  ``~/.cache/torch/hub/checkpoints``).
+
+A missing file fails when the encoder is built, naming the file and where to put it.
+
+Encoding: the (B, S, S, 3) uint8 crops are scaled to [0, 1], normalised with the
+ImageNet mean and std, and passed through the ViT under ``torch.inference_mode``
+(position embeddings are interpolated by transformers when S != 518); the output is the
+final-layernorm patch tokens as a (B, D, S/14, S/14) float32 map (the lifting code
+upsamples it bilinearly). ``precision="bf16"`` runs under bf16 autocast, ``"fp32"``
+in float32, ``"auto"`` (default) picks bf16 when the hardware has it (CUDA with bf16,
+or a CPU whose ``/proc/cpuinfo`` lists ``amx_bf16`` or ``avx512_bf16``) and fp32
+otherwise; bf16 requested on hardware without it falls back to fp32 with a warning.
+The precision actually used is part of ``cache_params()``, together with the model,
+the input size and a SHA-1 of the weights.
+
+The model itself is loaded lazily on the first :meth:`Dinov2Encoder.encode`, so that
+building the encoder at DAG-planning time only checks the files (and hashes them once
+per (path, size, mtime)).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import re
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.encoders.registry import VisualEncoder, register_encoder
+
+PATCH_SIZE = 14
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+NUM_REGISTER_TOKENS = 4
+
+# Architecture of the official backbones (facebookresearch/dinov2 hub/backbones.py):
+# all are trained at 518 px (37x37 patches), mlp_ratio 4, layer scale, qkv bias; ViT-g
+# uses a SwiGLU feed-forward.
+MODEL_CONFIGS: dict[str, dict[str, Any]] = {
+    "vits14": {"hidden_size": 384, "num_hidden_layers": 12, "num_attention_heads": 6, "use_swiglu_ffn": False, "image_size": 518},
+    "vitb14": {"hidden_size": 768, "num_hidden_layers": 12, "num_attention_heads": 12, "use_swiglu_ffn": False, "image_size": 518},
+    "vitl14": {"hidden_size": 1024, "num_hidden_layers": 24, "num_attention_heads": 16, "use_swiglu_ffn": False, "image_size": 518},
+    "vitg14": {"hidden_size": 1536, "num_hidden_layers": 40, "num_attention_heads": 24, "use_swiglu_ffn": True, "image_size": 518},
+}
+
+_HF_WEIGHT_PATTERNS = ("*.safetensors", "*.bin")
+
+
+# --- model names and weight files ---------------------------------------------------
+
+
+def parse_model_name(model: str) -> tuple[str, bool]:
+    """``"vits14"`` -> ("vits14", False); ``"vits14_reg"``/``"vits14-reg"``/``"vits14_reg4"``
+    -> ("vits14", True)."""
+    m = re.fullmatch(r"(vit[a-z]14)(?:[_-]?reg4?)?", str(model))
+    if m is None or m.group(1) not in MODEL_CONFIGS:
+        known = ", ".join(list(MODEL_CONFIGS) + [f"{k}_reg" for k in MODEL_CONFIGS])
+        raise ValueError(f"dinov2: unknown model {model!r}; known: {known}")
+    return m.group(1), str(model) != m.group(1)
+
+
+def official_filename(model: str) -> str:
+    """The official checkpoint file name, e.g. ``dinov2_vits14_reg4_pretrain.pth``."""
+    arch, reg = parse_model_name(model)
+    return f"dinov2_{arch}{'_reg4' if reg else ''}_pretrain.pth"
+
+
+def hub_checkpoint_dir() -> Path:
+    """Where official checkpoints are looked up when ``weights`` is None."""
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+def weights_status(model: str = "vits14", weights: str | os.PathLike | None = None) -> dict[str, Any]:
+    """What the encoder needs and where it looks: ``{"file", "path", "found"}``."""
+    path = Path(weights).expanduser() if weights is not None else hub_checkpoint_dir() / official_filename(model)
+    if path.is_dir():
+        found = (path / "config.json").is_file() and bool(_hf_weight_files(path))
+    else:
+        found = path.is_file()
+    return {"file": official_filename(model) if weights is None else path.name, "path": str(path), "found": found}
+
+
+def _hf_weight_files(directory: Path) -> list[Path]:
+    files: set[Path] = set()
+    for pattern in _HF_WEIGHT_PATTERNS:
+        files.update(p for p in directory.glob(pattern) if p.is_file())
+    return sorted(files)
+
+
+_CHECKSUMS: dict[tuple, str] = {}
+
+
+def weights_checksum(path: str | os.PathLike) -> str:
+    """SHA-1 of a weights file, or of a HF directory's ``config.json`` and weight files
+    (names and contents). Cached per (path, size, mtime) of every file hashed."""
+    path = Path(path)
+    files = [path] if path.is_file() else [path / "config.json"] + _hf_weight_files(path)
+    stats = tuple((str(f.resolve()), f.stat().st_size, f.stat().st_mtime_ns) for f in files)
+    if stats not in _CHECKSUMS:
+        h = hashlib.sha1()
+        for f in files:
+            if len(files) > 1:
+                h.update(f.name.encode() + b"\0")
+            with open(f, "rb") as fh:
+                for chunk in iter(functools.partial(fh.read, 1 << 20), b""):
+                    h.update(chunk)
+        _CHECKSUMS[stats] = h.hexdigest()
+    return _CHECKSUMS[stats]
+
+
+# --- precision and device -----------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_supports_bf16() -> bool:
+    """True when /proc/cpuinfo lists ``amx_bf16`` or ``avx512_bf16``."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return bool(flags & {"amx_bf16", "avx512_bf16"})
+    except OSError:
+        pass
+    return False
+
+
+def bf16_supported(device: str) -> bool:
+    """Whether ``device`` (``"cpu"`` or ``"cuda[:i]"``) runs bf16 in hardware."""
+    if device.startswith("cuda"):
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    return cpu_supports_bf16()
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """``"auto"``/``"bf16"``/``"fp32"`` -> the precision actually used (``"bf16"`` or ``"fp32"``)."""
+    if precision not in ("auto", "bf16", "fp32"):
+        raise ValueError(f"dinov2: precision must be 'auto', 'bf16' or 'fp32', got {precision!r}")
+    if precision == "fp32":
+        return "fp32"
+    if bf16_supported(device):
+        return "bf16"
+    if precision == "bf16":
+        warnings.warn(f"dinov2: bf16 is not supported in hardware on {device}; using fp32", stacklevel=3)
+    return "fp32"
+
+
+# --- official state dict -> transformers --------------------------------------------
+
+
+def _pick(keys: set[str], prefix: str, *candidates: str) -> str:
+    """The first ``prefix + candidate`` module name having a parameter in ``keys``."""
+    for cand in candidates:
+        name = prefix + cand
+        if any(k.startswith(name + ".") for k in keys):
+            return name
+    raise KeyError(f"dinov2: none of {[prefix + c for c in candidates]} in the transformers model")
+
+
+def official_to_hf(state_dict: dict[str, torch.Tensor], hf_keys: set[str] | list[str]) -> dict[str, torch.Tensor]:
+    """Rename an official DINOv2 state dict to the parameter names of a transformers
+    ``Dinov2Model``/``Dinov2WithRegistersModel`` whose state-dict keys are ``hf_keys``.
+
+    Handles both the current transformers names (``attention.q_proj``, ``o_proj``,
+    ``mlp.gate_proj/up_proj/down_proj``) and the older ones (``attention.attention.query``,
+    ``attention.output.dense``, ``mlp.weights_in/weights_out``). The fused ``qkv``
+    projection is split in rows (q, k, v); the SwiGLU ``w12`` in (gate, up) halves.
+    Unknown official names raise ``KeyError`` (the caller loads strictly).
+    """
+    hf_keys = set(hf_keys)
+    out: dict[str, torch.Tensor] = {}
+    top = {
+        "cls_token": "embeddings.cls_token",
+        "pos_embed": "embeddings.position_embeddings",
+        "mask_token": "embeddings.mask_token",
+        "register_tokens": "embeddings.register_tokens",
+        "patch_embed.proj.weight": "embeddings.patch_embeddings.projection.weight",
+        "patch_embed.proj.bias": "embeddings.patch_embeddings.projection.bias",
+        "norm.weight": "layernorm.weight",
+        "norm.bias": "layernorm.bias",
+    }
+    for key, value in state_dict.items():
+        # chunked checkpoints (block_chunks > 0) name blocks "blocks.<chunk>.<i>."
+        key = re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", key)
+        if key in top:
+            out[top[key]] = value
+            continue
+        m = re.fullmatch(r"blocks\.(\d+)\.(.+)\.(weight|bias|gamma)", key)
+        if m is None:
+            raise KeyError(f"dinov2: unexpected parameter {key!r} in the official state dict")
+        i, name, kind = m.groups()
+        p = f"encoder.layer.{i}."
+        if name in ("norm1", "norm2", "mlp.fc1", "mlp.fc2") and kind != "gamma":
+            out[f"{p}{name}.{kind}"] = value
+        elif name in ("ls1", "ls2") and kind == "gamma":
+            out[f"{p}layer_scale{name[-1]}.lambda1"] = value
+        elif name == "attn.qkv":
+            q, k, v = value.chunk(3, dim=0)
+            names = [
+                _pick(hf_keys, p, "attention.q_proj", "attention.attention.query"),
+                _pick(hf_keys, p, "attention.k_proj", "attention.attention.key"),
+                _pick(hf_keys, p, "attention.v_proj", "attention.attention.value"),
+            ]
+            for n, t in zip(names, (q, k, v)):
+                out[f"{n}.{kind}"] = t.contiguous()
+        elif name == "attn.proj":
+            out[f"{_pick(hf_keys, p, 'attention.o_proj', 'attention.output.dense')}.{kind}"] = value
+        elif name == "mlp.w12":
+            if any(k.startswith(p + "mlp.weights_in.") for k in hf_keys):
+                out[f"{p}mlp.weights_in.{kind}"] = value
+            else:
+                gate, up = value.chunk(2, dim=0)
+                out[f"{_pick(hf_keys, p, 'mlp.gate_proj')}.{kind}"] = gate.contiguous()
+                out[f"{_pick(hf_keys, p, 'mlp.up_proj')}.{kind}"] = up.contiguous()
+        elif name == "mlp.w3":
+            out[f"{_pick(hf_keys, p, 'mlp.down_proj', 'mlp.weights_out')}.{kind}"] = value
+        else:
+            raise KeyError(f"dinov2: unexpected parameter {key!r} in the official state dict")
+    return out
+
+
+def hf_config_for(model: str, arch: dict[str, Any] | None = None):
+    """transformers config of an official backbone (``arch`` overrides MODEL_CONFIGS)."""
+    from transformers import Dinov2Config, Dinov2WithRegistersConfig
+
+    name, reg = parse_model_name(model)
+    a = dict(MODEL_CONFIGS[name] if arch is None else arch)
+    common = dict(
+        hidden_size=a["hidden_size"],
+        num_hidden_layers=a["num_hidden_layers"],
+        num_attention_heads=a["num_attention_heads"],
+        use_swiglu_ffn=a["use_swiglu_ffn"],
+        image_size=a["image_size"],
+        patch_size=PATCH_SIZE,
+        mlp_ratio=4,
+        layerscale_value=1.0,
+        layer_norm_eps=1e-6,
+        qkv_bias=True,
+        hidden_act="gelu",
+    )
+    if reg:
+        return Dinov2WithRegistersConfig(num_register_tokens=NUM_REGISTER_TOKENS, **common)
+    return Dinov2Config(**common)
+
+
+def load_official(path: str | os.PathLike, model: str) -> torch.nn.Module:
+    """A transformers model with the official state dict ``path`` loaded strictly."""
+    from transformers import Dinov2Model, Dinov2WithRegistersModel
+
+    config = hf_config_for(model)
+    cls = Dinov2WithRegistersModel if getattr(config, "num_register_tokens", 0) else Dinov2Model
+    net = cls(config)
+    sd = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(sd, dict) and "model" in sd and isinstance(sd["model"], dict):
+        sd = sd["model"]
+    mapped = official_to_hf(sd, net.state_dict().keys())
+    try:
+        net.load_state_dict(mapped, strict=True)
+    except RuntimeError as exc:
+        raise ValueError(f"dinov2: {path} does not match model {model!r}: {exc}") from exc
+    return net
+
+
+def load_hf_dir(path: str | os.PathLike) -> torch.nn.Module:
+    """A ``Dinov2Model``/``Dinov2WithRegistersModel`` from a local HF-layout directory."""
+    from transformers import Dinov2Model, Dinov2WithRegistersModel
+
+    model_type = json.loads((Path(path) / "config.json").read_text()).get("model_type")
+    cls = Dinov2WithRegistersModel if model_type == "dinov2_with_registers" else Dinov2Model
+    return cls.from_pretrained(str(path), local_files_only=True)
+
+
+# --- the encoder ----------------------------------------------------------------------
+
+
+class Dinov2Encoder(VisualEncoder):
+    """DINOv2 patch tokens (see module docstring).
+
+    model: ``vits14`` | ``vitb14`` | ``vitl14`` | ``vitg14``, optionally with ``_reg``.
+    weights: HF directory, official ``.pth`` file, or None for the torch hub cache.
+    input_size: crop side S, a multiple of 14 (224 as in FreeZe).
+    precision: ``auto`` | ``bf16`` | ``fp32``.
+    device: ``auto`` (cuda if available, else cpu), ``cpu``, ``cuda``, ``cuda:1``...
+    batch_size: crops per forward pass.
+    """
+
+    name = "dinov2"
+    version = "1"
+
+    def __init__(
+        self,
+        model: str = "vits14",
+        weights: str | None = None,
+        input_size: int = 224,
+        precision: str = "auto",
+        device: str = "auto",
+        batch_size: int = 8,
+    ) -> None:
+        self.arch, self.registers = parse_model_name(model)
+        self.model = self.arch + ("_reg" if self.registers else "")
+        if int(input_size) != input_size or input_size < PATCH_SIZE or input_size % PATCH_SIZE != 0:
+            raise ValueError(f"dinov2: input_size must be a positive multiple of {PATCH_SIZE}, got {input_size}")
+        if int(batch_size) < 1:
+            raise ValueError(f"dinov2: batch_size must be >= 1, got {batch_size}")
+        self.input_size = int(input_size)
+        self.batch_size = int(batch_size)
+        self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else str(device)
+        self.precision = resolve_precision(precision, self.device)
+
+        expected = official_filename(self.model)
+        if weights is None:
+            path = hub_checkpoint_dir() / expected
+            if not path.is_file():
+                raise FileNotFoundError(
+                    f"dinov2: weights for {self.model} not found: put the official file {expected} "
+                    f"(from https://dl.fbaipublicfiles.com/dinov2/) in {path.parent} (the torch hub cache, "
+                    f"$TORCH_HOME/hub/checkpoints), or set the encoder param 'weights' to that file or to a "
+                    f"local Hugging Face model directory. Nothing is downloaded."
+                )
+        else:
+            path = Path(weights).expanduser()
+            if path.is_dir():
+                if not (path / "config.json").is_file() or not _hf_weight_files(path):
+                    raise FileNotFoundError(
+                        f"dinov2: {path} is not a Hugging Face model directory: it needs config.json and "
+                        f"model.safetensors (or pytorch_model.bin) of a Dinov2 model such as facebook/dinov2-small"
+                    )
+            elif not path.is_file():
+                raise FileNotFoundError(
+                    f"dinov2: weights file {path} not found: put the official {expected} there, or point "
+                    f"'weights' at a local Hugging Face model directory. Nothing is downloaded."
+                )
+        self.weights_path = path.resolve()
+        self.hf_dir = self.weights_path.is_dir()
+        if self.hf_dir:
+            self._check_hf_config()
+        self.dim = int(self._hidden_size)
+        self._net: torch.nn.Module | None = None
+
+    def _check_hf_config(self) -> None:
+        cfg = json.loads((self.weights_path / "config.json").read_text())
+        arch = MODEL_CONFIGS[self.arch]
+        got = (cfg.get("hidden_size"), cfg.get("num_hidden_layers"), int(cfg.get("num_register_tokens", 0) or 0))
+        want = (arch["hidden_size"], arch["num_hidden_layers"], NUM_REGISTER_TOKENS if self.registers else 0)
+        if cfg.get("model_type") not in ("dinov2", "dinov2_with_registers") or got != want:
+            raise ValueError(
+                f"dinov2: {self.weights_path}/config.json describes model_type={cfg.get('model_type')!r}, "
+                f"hidden_size, layers, registers = {got}, but model {self.model!r} needs {want}"
+            )
+        if cfg.get("patch_size", PATCH_SIZE) != PATCH_SIZE:
+            raise ValueError(f"dinov2: {self.weights_path} has patch_size {cfg.get('patch_size')}, expected {PATCH_SIZE}")
+
+    @property
+    def _hidden_size(self) -> int:
+        return MODEL_CONFIGS[self.arch]["hidden_size"]
+
+    def signature(self) -> str:
+        sig = f"dinov2-{self.arch}" + ("reg" if self.registers else "")
+        return sig if self.input_size == 224 else f"{sig}-s{self.input_size}"
+
+    def cache_params(self) -> dict[str, Any]:
+        return {
+            "model": self.model,
+            "input_size": self.input_size,
+            "precision": self.precision,
+            "weights_format": "hf" if self.hf_dir else "official",
+            "weights_sha1": weights_checksum(self.weights_path),
+        }
+
+    def _load(self) -> torch.nn.Module:
+        if self._net is None:
+            net = load_hf_dir(self.weights_path) if self.hf_dir else load_official(self.weights_path, self.model)
+            self._net = net.eval().to(self.device)
+        return self._net
+
+    def encode(self, images: np.ndarray) -> np.ndarray:
+        images = np.asarray(images)
+        S = self.input_size
+        if images.ndim != 4 or images.shape[1:] != (S, S, 3):
+            raise ValueError(f"dinov2: expected images (B, {S}, {S}, 3) uint8, got shape {images.shape}")
+        if images.dtype != np.uint8:
+            raise ValueError(f"dinov2: expected uint8 images, got {images.dtype}")
+        net = self._load()
+        g = S // PATCH_SIZE
+        skip = 1 + int(getattr(net.config, "num_register_tokens", 0) or 0)
+        dev = torch.device(self.device)
+        mean = torch.tensor(IMAGENET_MEAN, device=dev).view(1, 3, 1, 1)
+        std = torch.tensor(IMAGENET_STD, device=dev).view(1, 3, 1, 1)
+        out = np.empty((len(images), self.dim, g, g), dtype=np.float32)
+        with torch.inference_mode(), torch.autocast(
+            dev.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"
+        ):
+            for b0 in range(0, len(images), self.batch_size):
+                x = torch.from_numpy(images[b0 : b0 + self.batch_size]).to(dev)
+                x = (x.permute(0, 3, 1, 2).float() / 255.0 - mean) / std
+                tokens = net(pixel_values=x).last_hidden_state[:, skip:]
+                fmap = tokens.float().reshape(len(x), g, g, -1).permute(0, 3, 1, 2)
+                out[b0 : b0 + len(x)] = fmap.cpu().numpy()
+        return out
+
+
+register_encoder("dinov2", "visual", Dinov2Encoder)
