@@ -55,3 +55,15 @@ def test_score_command_names_the_bad_line(tmp_path):
     result = runner.invoke(app, ["score", str(csv), "--dataset-root", str(DATA / "icbin")])
     assert result.exit_code == 1
     assert "line 3" in result.output
+
+
+def test_encoders_command_reports_weights(monkeypatch, tmp_path):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # an empty hub cache
+    result = runner.invoke(app, ["encoders", "--json"])
+    assert result.exit_code == 0, result.output
+    rows = {r["manifest"]: r for r in json.loads(result.output)["manifests"]}
+    assert rows["fpfh"]["ok"] and rows["fpfh"]["dim"] == 66 and rows["fpfh"]["weights"] == "none needed"
+    assert rows["colortex"]["ok"] and rows["colortex"]["kind"] == "visual"
+    assert not rows["dinov2-vits14"]["ok"]
+    assert "dinov2_vits14_pretrain.pth" in rows["dinov2-vits14"]["weights"]
+    assert str(tmp_path / "torch") in rows["dinov2-vits14"]["weights"]
