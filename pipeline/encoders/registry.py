@@ -27,7 +27,7 @@ EncoderKind = Literal["geometric", "visual"]
 # Modules whose import registers encoders, imported on first use of the registry (so
 # the registry has no import-time dependency on them, and no import cycle). Modules
 # that need weights must load them lazily, in their factories, not at import.
-_BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex")
+_BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex", "pipeline.encoders.rgb")
 _OPTIONAL_MODULES = ("pipeline.encoders.dinov2", "pipeline.encoders.gedi")
 
 
