@@ -5,6 +5,9 @@ row-major floats, t mm), n_inliers, inlier_ratio, fitness, n_correspondences, ti
 ``poses.parquet``: per target (scene, image, object) the ``inst_count`` candidates with
 the most inliers (as in the paper, the candidate with the most inliers wins).
 ``images.parquet``: registration time per image (s).
+``pca.zarr``: the per-object PCA bases used (obj_id (K,), mean (K, C), components
+(K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual
+features carried no variance and the visual part was dropped).
 """
 
 from __future__ import annotations
@@ -15,9 +18,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.plan import DatasetPlan, obj_item, item_id
-from pipeline.store import item_seed, load_arrays, publish, read_table, write_table
+from pipeline.store import item_seed, load_arrays, publish, read_table, save_arrays, write_table
 
-CODE_VERSION = 2
+CODE_VERSION = 3
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
@@ -80,6 +83,15 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": sp.key})
         write_table(poses, w.dir / "poses.parquet", metadata={"key": sp.key})
         write_table(images, w.dir / "images.parquet", metadata={"key": sp.key})
+        ids = sorted(models)
+        bases = [models[o]["basis"] for o in ids]
+        save_arrays(w.dir / "pca.zarr", {
+            "obj_id": np.asarray(ids, np.int64),
+            "mean": np.stack([b.mean for b in bases]) if bases else np.zeros((0, 0), np.float32),
+            "components": np.stack([b.components for b in bases]) if bases else np.zeros((0, 0, 0), np.float32),
+            "explained_variance": np.stack([b.explained_variance for b in bases]) if bases else np.zeros((0, 0), np.float32),
+            "informative": np.asarray([b.informative for b in bases], bool),
+        }, attrs={"key": sp.key, "pca_dim": p.pca_dim})
         w.summary.update({"scene_id": scene_id, "n_candidates": int(len(table)),
                           "n_registered": int((table.status == "ok").sum()), "n_poses": int(len(poses)),
                           "targets_without_pose": int(len({(t.im_id, t.obj_id) for t in targets})

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.bop import read_results_csv
@@ -62,6 +63,13 @@ def test_bop_all_produces_scores_and_a_bop_csv(tiny_run):
     # One time per image, as BOP requires.
     assert (results.groupby(["scene_id", "im_id"]).time.nunique() == 1).all()
     assert (work / "results" / "ar_table.md").read_text().count("synthtiny") == 1
+    # The per-object PCA bases are stored and orthonormal.
+    from pipeline.store import load_arrays
+
+    pca = load_arrays(next((work / "cache" / "synthtiny" / "register").glob("*/scene_*/pca.zarr")))
+    assert len(pca["obj_id"]) >= 2
+    for comps in pca["components"]:
+        assert np.allclose(comps @ comps.T, np.eye(len(comps)), atol=1e-4)
     # No temporary folder of an atomic publish is left anywhere.
     assert not list((work / "cache").rglob(".tmp-*"))
 

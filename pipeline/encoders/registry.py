@@ -28,7 +28,13 @@ EncoderKind = Literal["geometric", "visual"]
 # the registry has no import-time dependency on them, and no import cycle). Modules
 # that need weights must load them lazily, in their factories, not at import.
 _BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex", "pipeline.encoders.rgb")
-_OPTIONAL_MODULES = ("pipeline.encoders.dinov2", "pipeline.encoders.gedi")
+# Encoders whose modules import torch (about 1 s and 150 MiB per process): registered
+# by name and imported only when one is built, so that jobs using the weight-free
+# encoders, and the Snakefile's planning, don't pay for them.
+_LAZY_MODULES: dict[str, tuple[EncoderKind, str]] = {
+    "dinov2": ("visual", "pipeline.encoders.dinov2"),
+    "gedi": ("geometric", "pipeline.encoders.gedi"),
+}
 
 
 class EncoderSpec(BaseModel):
@@ -136,9 +142,23 @@ def _load_builtins() -> None:
         _builtins_loaded = True
         for module in _BUILTIN_MODULES:
             importlib.import_module(module)
-        for module in _OPTIONAL_MODULES:
-            if importlib.util.find_spec(module) is not None:
-                importlib.import_module(module)
+        for name, (kind, module) in _LAZY_MODULES.items():
+            if name not in _REGISTRY and importlib.util.find_spec(module) is not None:
+                _REGISTRY[name] = (kind, _lazy_factory(name, module))
+
+
+def _lazy_factory(name: str, module: str) -> EncoderFactory:
+    """A factory that imports ``module`` (which registers the real factory under
+    ``name``, replacing this one) and then builds through it."""
+
+    def factory(**params: Any) -> Encoder:
+        importlib.import_module(module)
+        real = _REGISTRY[name][1]
+        if real is factory:
+            raise RuntimeError(f"{module} did not register encoder {name!r}")
+        return real(**params)
+
+    return factory
 
 
 def known_encoders() -> dict[str, EncoderKind]:
