@@ -31,7 +31,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset", default="synthmini")
     ap.add_argument("--cores", type=int, default=2)
-    ap.add_argument("--fresh", action="store_true", help="delete the dataset's cache first")
+    ap.add_argument("--fresh", action="store_true", help="delete the dataset's cache (and the AR table) first")
     args = ap.parse_args()
 
     from pipeline.config import load_run
@@ -40,7 +40,10 @@ def main() -> None:
 
     rp = RunPlan(load_run({"datasets": args.dataset}))
     if args.fresh:
+        # Snakemake does not rebuild missing intermediates of an up-to-date target, so
+        # the AR table goes too.
         shutil.rmtree(rp.cache / args.dataset, ignore_errors=True)
+        (rp.cache.parent / "results" / "ar_table.md").unlink(missing_ok=True)
     cmd = [str(Path(sys.executable).parent / "snakemake"), "--cores", str(args.cores), "bop_all",
            "--config", f"datasets={args.dataset}"]
     t0 = time.perf_counter()
