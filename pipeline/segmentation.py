@@ -8,20 +8,12 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
+from pipeline.bop.detections import rle_uncompressed
+
 
 def rle_area(counts: Sequence[int]) -> int:
     """Foreground pixels of an uncompressed RLE (odd runs are foreground)."""
     return int(np.asarray(counts[1::2], dtype=np.int64).sum())
-
-
-def _uncompressed(rle: dict) -> dict:
-    """The same RLE with list counts (COCO compressed strings are expanded)."""
-    from pipeline.bop.detections import rle_counts_from_string
-
-    counts = rle["counts"]
-    if isinstance(counts, (str, bytes)):
-        counts = rle_counts_from_string(counts.decode("ascii") if isinstance(counts, bytes) else counts)
-    return {"counts": [int(c) for c in counts], "size": [int(v) for v in rle["size"]]}
 
 
 def select_candidates(
@@ -62,7 +54,7 @@ def select_candidates(
             if kept >= top_k:
                 dropped["beyond_top_k"] += 1
                 continue
-            rle = _uncompressed(det.segmentation)
+            rle = rle_uncompressed(det.segmentation)
             area = rle_area(rle["counts"])
             if area < min_area:
                 dropped["small_mask"] += 1

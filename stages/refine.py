@@ -46,7 +46,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                                              ["points", "normals"])
             m = models[obj_id]
             i = pos[int(c.cand_id)]
-            k = int(np.sum(~np.isnan(scene["points"][i, :, 0])))
+            k = int(scene["n_points"][i])
             res = refine_icp(m["points"], m["normals"], scene["points"][i, :k],
                              np.asarray(c.R, float).reshape(3, 3), np.asarray(c.t, float), infos[obj_id].diameter,
                              max_corr_dist_frac=p.max_corr_frac, iterations=p.iterations, point_to_plane=p.point_to_plane)

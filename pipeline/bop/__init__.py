@@ -25,6 +25,7 @@ from .detections import (
     rle_counts_from_string,
     rle_counts_to_string,
     rle_decode,
+    rle_uncompressed,
     rle_encode,
     save_detections,
 )
@@ -54,6 +55,7 @@ __all__ = [
     "rle_counts_from_string",
     "rle_counts_to_string",
     "rle_decode",
+    "rle_uncompressed",
     "rle_encode",
     "save_bop_json",
     "save_depth_png",

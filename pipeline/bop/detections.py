@@ -121,6 +121,12 @@ def _rle_counts(rle: dict) -> tuple[list[int], int, int]:
     return counts, h, w
 
 
+def rle_uncompressed(rle: dict) -> dict:
+    """The same RLE, validated, with list counts (COCO compressed strings expanded)."""
+    counts, h, w = _rle_counts(rle)
+    return {"counts": counts, "size": [h, w]}
+
+
 def rle_decode(rle: dict) -> np.ndarray:
     """(H, W) bool mask of an uncompressed (list counts) or compressed (string) COCO RLE."""
     counts, h, w = _rle_counts(rle)

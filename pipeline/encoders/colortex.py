@@ -140,12 +140,8 @@ class ColorTexEncoder(VisualEncoder):
         return names
 
     def encode(self, images: np.ndarray) -> np.ndarray:
-        images = np.asarray(images)
+        images = self.check_images(images)
         S = self.input_size
-        if images.ndim != 4 or images.shape[1:] != (S, S, 3):
-            raise ValueError(f"colortex: expected images (B, {S}, {S}, 3) uint8, got shape {images.shape}")
-        if images.dtype != np.uint8:
-            raise ValueError(f"colortex: expected uint8 images, got {images.dtype}")
         out = np.empty((len(images), self.dim, S // self.stride, S // self.stride), dtype=np.float32)
         for b, img in enumerate(images):
             out[b] = self._encode_one(img).transpose(2, 0, 1)

@@ -395,12 +395,8 @@ class Dinov2Encoder(VisualEncoder):
         return self._net
 
     def encode(self, images: np.ndarray) -> np.ndarray:
-        images = np.asarray(images)
+        images = self.check_images(images)
         S = self.input_size
-        if images.ndim != 4 or images.shape[1:] != (S, S, 3):
-            raise ValueError(f"dinov2: expected images (B, {S}, {S}, 3) uint8, got shape {images.shape}")
-        if images.dtype != np.uint8:
-            raise ValueError(f"dinov2: expected uint8 images, got {images.dtype}")
         net = self._load()
         g = S // PATCH_SIZE
         skip = 1 + int(getattr(net.config, "num_register_tokens", 0) or 0)

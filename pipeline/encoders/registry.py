@@ -115,6 +115,16 @@ class VisualEncoder(_EncoderBase):
         ``[j*S/w, (j+1)*S/w)`` (its centre is at crop coordinate ``(j+0.5)*S/w - 0.5``),
         which is the convention :mod:`pipeline.encoders.lifting` upsamples with."""
 
+    def check_images(self, images: np.ndarray) -> np.ndarray:
+        """``images`` as an array, after checking it is (B, S, S, 3) uint8 with S == input_size."""
+        images = np.asarray(images)
+        S = self.input_size
+        if images.ndim != 4 or images.shape[1:] != (S, S, 3):
+            raise ValueError(f"{self.name}: expected images (B, {S}, {S}, 3) uint8, got shape {images.shape}")
+        if images.dtype != np.uint8:
+            raise ValueError(f"{self.name}: expected uint8 images, got {images.dtype}")
+        return images
+
 
 Encoder = GeometricEncoder | VisualEncoder
 EncoderFactory = Callable[..., Encoder]

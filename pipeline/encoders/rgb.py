@@ -31,10 +31,7 @@ class RgbEncoder(VisualEncoder):
         return {"input_size": self.input_size}
 
     def encode(self, images: np.ndarray) -> np.ndarray:
-        images = np.asarray(images)
-        S = self.input_size
-        if images.ndim != 4 or images.shape[1:] != (S, S, 3):
-            raise ValueError(f"rgb: expected images (B, {S}, {S}, 3) uint8, got shape {images.shape}")
+        images = self.check_images(images)
         return (images.astype(np.float32) / 255.0).transpose(0, 3, 1, 2).copy()
 
 
