@@ -74,35 +74,43 @@ def stage(
 @app.command()
 def encoders(
     as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
+    weights_dir: Optional[Path] = typer.Option(
+        None, help="folder of encoder weights (default $FREEZE_WEIGHTS or <project>/weights)"),
 ) -> None:
     """List the encoder manifests: kind, dimension, version, and the weights each needs
     (found or not, and the exact path looked in)."""
     from pipeline.config import MANIFEST_DIR, ManifestError, load_encoder_manifest
-    from pipeline.encoders.registry import EncoderSpec, build_encoder, known_encoders
+    from pipeline.encoders.registry import (EncoderSpec, WeightsNotFound, build_encoder, known_encoders, needs_weights,
+                                            resolve_weights_dir)
 
+    wdir = resolve_weights_dir(weights_dir)
     rows = []
     for path in sorted((MANIFEST_DIR / "encoders").glob("*.yaml")):
         row: dict = {"manifest": path.stem}
         try:
             man = load_encoder_manifest(path.stem)
             row.update(encoder=man.encoder, kind=man.kind)
-            enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)))
+            enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=wdir)
             weights = getattr(enc, "weights_path", None) or getattr(enc, "weights", None)
             row.update(dim=enc.dim, version=enc.version, signature=enc.signature(),
-                       weights=f"found: {weights}" if weights else "none needed", ok=True)
+                       weights=f"found: {weights}" if needs_weights(man.encoder) else "none needed", ok=True)
+        except WeightsNotFound as e:
+            row.update(weights="MISSING, looked in: " + ", ".join(map(str, e.looked_in)), error=str(e), ok=False)
         except (FileNotFoundError, ValueError, ManifestError) as e:
-            row.update(weights=f"MISSING: {e}", ok=False)
+            row.update(weights=f"ERROR: {e}", error=str(e), ok=False)
         rows.append(row)
     unused = sorted(set(known_encoders()) - {r.get("encoder") for r in rows})
     if as_json:
-        print(json.dumps({"manifests": rows, "registered_without_manifest": unused}, indent=2))
+        print(json.dumps({"weights_dir": str(wdir), "manifests": rows, "registered_without_manifest": unused}, indent=2))
         return
-    table = Table("manifest", "encoder", "kind", "dim", "version", "signature", "weights", title="encoders")
+    table = Table("manifest", "encoder", "kind", "dim", "version", "signature", title="encoders")
+    table.add_column("weights", overflow="fold")
     for r in rows:
         table.add_row(r["manifest"], r.get("encoder", "?"), r.get("kind", "?"), str(r.get("dim", "-")),
                       str(r.get("version", "-")), r.get("signature", "-"),
                       r["weights"] if r["ok"] else f"[red]{r['weights']}")
     Console(width=max(120, Console().width)).print(table)
+    console.print(f"weights folder: {wdir} (--weights-dir, $FREEZE_WEIGHTS, or <project>/weights)")
     if unused:
         console.print(f"registered encoders without a manifest: {', '.join(unused)}")
 

@@ -9,8 +9,10 @@ Three kinds of YAML manifest live in ``manifests/``:
 
 All are validated by the pydantic models below; a bad value fails with the file and
 the field. Snakemake's ``--config`` may override a few top-level run keys with plain
-strings (``datasets=a,b``, ``geometric_encoder=...``, ``visual_encoder=...``,
-``bop_root=...``, ``method=...``, ``run=manifests/runs/other.yaml``).
+strings (``datasets=a,b``, ``geometric_encoder=...`` or its short form ``geometric=...``,
+``visual_encoder=...`` or ``visual=...``, ``weights_dir=...``, ``bop_root=...``,
+``method=...``, ``run=manifests/runs/other.yaml``). An encoder may be ``none``
+(geometry-only or vision-only runs), not both.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from pathlib import Path
 from typing import Any, Literal, Mapping
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 MANIFEST_DIR = PROJECT_ROOT / "manifests"
@@ -140,6 +142,19 @@ class DatasetManifest(_Strict):
         return v
 
 
+NO_ENCODER = "none"
+
+
+def _is_none(name: str, kind: str) -> bool:
+    return name in (NO_ENCODER, f"{NO_ENCODER}-{kind}")
+
+
+def encoder_manifest_name(name: str, kind: str) -> str:
+    """The encoder manifest a run's ``name`` refers to: ``none`` is short for
+    ``none-geometric`` / ``none-visual``."""
+    return f"{NO_ENCODER}-{kind}" if name == NO_ENCODER else name
+
+
 class RunManifest(_Strict):
     """What ``bop_all`` runs."""
 
@@ -148,7 +163,16 @@ class RunManifest(_Strict):
     geometric_encoder: str = "fpfh"
     visual_encoder: str = "colortex"
     bop_root: str | None = None
+    weights_dir: str | None = Field(
+        None, description="folder of encoder weights (default $FREEZE_WEIGHTS or <project>/weights); "
+                          "not part of any cache key: the encoders key on weight checksums")
     stages: StageParams = StageParams()
+
+    @model_validator(mode="after")
+    def _one_encoder_at_least(self) -> "RunManifest":
+        if _is_none(self.geometric_encoder, "geometric") and _is_none(self.visual_encoder, "visual"):
+            raise ValueError("geometric_encoder and visual_encoder are both 'none': nothing left to match")
+        return self
 
     @field_validator("method")
     @classmethod
@@ -205,7 +229,9 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
 
 
 # Flat keys that `snakemake --config key=value` may set.
-_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "method")
+_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method")
+# Short forms accepted on the command line.
+_ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder"}
 
 
 def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) -> RunManifest:
@@ -220,10 +246,18 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
     if not run_path.is_absolute() and not run_path.exists():
         run_path = PROJECT_ROOT / run_path
     data = _read_yaml(run_path)
+    for alias, key in _ALIASES.items():
+        if alias in config:
+            if config.get(key) not in (None, config[alias]):
+                raise ManifestError(f"config: both '{alias}' and '{key}' given, with different values")
+            config[key] = config.pop(alias)
     for key, value in config.items():
         if key in _OVERRIDES and value is not None:
             if key == "datasets" and isinstance(value, str):
                 value = [v for v in value.split(",") if v]
+            if key == "weights_dir":
+                # stage jobs may run elsewhere: fix a relative folder to where it was given
+                value = str(Path(value).expanduser().resolve())
             data[key] = value
         elif key in data and key not in _OVERRIDES:
             data[key] = value

@@ -132,20 +132,21 @@ class DatasetPlan:
 
 
 def _encoder_manifest(name: str, kind: str) -> cfg.EncoderManifest:
+    name = cfg.encoder_manifest_name(name, kind)
     man = cfg.load_encoder_manifest(name)
     if man.kind != kind:
         raise cfg.ManifestError(f"manifests/encoders/{name}.yaml: field 'kind' is '{man.kind}', but it is used as the {kind} encoder")
     return man
 
 
-def _encoder_entry(name: str, kind: str) -> dict[str, Any]:
+def _encoder_entry(name: str, kind: str, weights_dir: str | None = None) -> dict[str, Any]:
     """Cache-relevant description of an encoder manifest: registry name, version, params."""
     from pipeline.encoders.registry import EncoderSpec, build_encoder
 
     man = _encoder_manifest(name, kind)
-    enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)))
+    enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=weights_dir)
     return {
-        "manifest": name,
+        "manifest": cfg.encoder_manifest_name(name, kind),
         "encoder": man.encoder,
         "version": enc.version,
         "params": enc.cache_params(),
@@ -180,8 +181,8 @@ class RunPlan:
     @cached_property
     def encoders(self) -> dict[str, dict[str, Any]]:
         return {
-            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric"),
-            "visual": _encoder_entry(self.run.visual_encoder, "visual"),
+            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric", self.run.weights_dir),
+            "visual": _encoder_entry(self.run.visual_encoder, "visual", self.run.weights_dir),
         }
 
     def available(self, name: str) -> tuple[bool, str]:
@@ -285,5 +286,5 @@ def build_encoders(run: cfg.RunManifest):
     out = []
     for name, kind in ((run.geometric_encoder, "geometric"), (run.visual_encoder, "visual")):
         man = _encoder_manifest(name, kind)
-        out.append(build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params))))
+        out.append(build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=run.weights_dir))
     return tuple(out)

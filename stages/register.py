@@ -7,7 +7,8 @@ the most inliers (as in the paper, the candidate with the most inliers wins).
 ``images.parquet``: registration time per image (s).
 ``pca.zarr``: the per-object PCA bases used (obj_id (K,), mean (K, C), components
 (K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual
-features carried no variance and the visual part was dropped).
+features carried no variance and the visual part was dropped); empty in geometry-only
+runs.
 """
 
 from __future__ import annotations
@@ -47,9 +48,10 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     def model(obj_id: int) -> dict:
         if obj_id not in models:
             m = load_arrays(plan["model_features"].item_dir(obj_item(obj_id)) / "features.zarr")
-            basis = fit_pca(m["visual"], n_components=p.pca_dim)
+            # geometry-only runs (visual encoder 'none') have no visual channels to reduce
+            basis = fit_pca(m["visual"], n_components=p.pca_dim) if m["visual"].shape[1] else None
             m["basis"] = basis
-            m["fused"] = fuse(m["geometric"], apply_pca(basis, m["visual"]))
+            m["fused"] = fuse(m["geometric"], apply_pca(basis, m["visual"]) if basis is not None else None)
             models[obj_id] = m
         return models[obj_id]
 
@@ -63,7 +65,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                 t0 = time.perf_counter()
                 m = model(int(c.obj_id))
                 i, k = pos[int(c.cand_id)], int(c.n_points)
-                fused = fuse(scene["geometric"][i, :k], apply_pca(m["basis"], scene["visual"][i, :k]))
+                basis = m["basis"]
+                fused = fuse(scene["geometric"][i, :k], apply_pca(basis, scene["visual"][i, :k]) if basis is not None else None)
                 reg = register(m["points"], m["fused"], scene["points"][i, :k], fused, infos[int(c.obj_id)].diameter,
                                params=params, seed=item_seed(sp.key, f"{item}/{c.cand_id}", p.seed))
                 dt = time.perf_counter() - t0
@@ -83,7 +86,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": sp.key})
         write_table(poses, w.dir / "poses.parquet", metadata={"key": sp.key})
         write_table(images, w.dir / "images.parquet", metadata={"key": sp.key})
-        ids = sorted(models)
+        ids = sorted(o for o in models if models[o]["basis"] is not None)
         bases = [models[o]["basis"] for o in ids]
         save_arrays(w.dir / "pca.zarr", {
             "obj_id": np.asarray(ids, np.int64),

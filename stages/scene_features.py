@@ -88,7 +88,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                 crop_boxes.append(box)
                 crop_idx.append(i)
                 bar.advance()
-            if crops:
+            if crops and vis_enc.dim:
                 feats = vis_enc.encode(np.stack(crops))
                 for j, i in enumerate(crop_idx):
                     k = n_points[i]

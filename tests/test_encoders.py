@@ -53,6 +53,8 @@ def test_bad_params_are_reported_with_encoder_name():
         ({"name": "fpfh", "params": {"radii": [0.1]}}, "geometric", 33, "fpfh"),
         ({"name": "colortex"}, "visual", 30, "colortex"),
         ({"name": "colortex", "params": {"intensity_weight": 0.2, "sigmas": [1, 2]}}, "visual", 18, "colortex"),
+        ({"name": "none-geometric"}, "geometric", 0, "nogeo"),
+        ({"name": "none-visual"}, "visual", 0, "novis"),
     ],
 )
 def test_build_encoder_metadata(spec, kind, dim, signature):
@@ -175,3 +177,26 @@ def test_colortex_brightness_invariance():
     tinted[..., 2] = (tinted[..., 2] * 0.6).astype(np.uint8)
     ft = enc.encode(tinted[None])[0]
     assert np.abs(ft[0:2] - f[0:2]).mean() > 10 * np.abs(fd[0:2] - f[0:2]).mean()
+
+
+def test_empty_encoders_give_zero_channels_and_lifting_skips_them():
+    from pipeline.encoders.lifting import lift_model_visual_features, sample_features_at_pixels
+
+    geo, vis = build_encoder({"name": "none-geometric"}), build_encoder({"name": "none-visual"})
+    pts = np.random.default_rng(0).normal(size=(7, 3)).astype(np.float32)
+    assert geo.encode(pts, None, 1.0).shape == (7, 0)
+    assert vis.encode(np.zeros((2, 224, 224, 3), np.uint8)).shape == (2, 0, 1, 1)
+    assert sample_features_at_pixels(np.zeros((0, 1, 1), np.float32), (0, 0, 224), 224, np.zeros((5, 2))).shape == (5, 0)
+
+    class Exploding(type(vis)):
+        def encode(self, images):
+            raise AssertionError("a 0-d encoder must not be called")
+
+    # one view looking at a flat square at z = 100 mm: every point is seen
+    depth = np.full((32, 32), 100.0, np.float32)
+    K = np.array([[32.0, 0, 15.5], [0, 32.0, 15.5], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(4, 28, 4), np.arange(4, 28, 4))
+    model = np.stack([(u.ravel() - 15.5) * 100 / 32, (v.ravel() - 15.5) * 100 / 32, np.zeros(u.size)], 1)
+    view = (np.zeros((32, 32, 3), np.uint8), depth, K, np.eye(3), np.array([0.0, 0.0, 100.0]))
+    feats, count = lift_model_visual_features(model, [view], Exploding(), diameter=100.0)
+    assert feats.shape == (len(model), 0) and (count == 1).all()

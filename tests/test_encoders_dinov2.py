@@ -107,7 +107,7 @@ def test_hf_dir_loads_offline_and_gives_patch_grid(tmp_path, tiny_arch, register
         tok = net(pixel_values=x).last_hidden_state[:, 1 + (4 if registers else 0):]
     ref = tok.reshape(3, 3, 3, 32).permute(0, 3, 1, 2).numpy()
     np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-5)
-    assert enc.signature() == f"dinov2-vitt14{'reg' if registers else ''}-s42"
+    assert enc.signature() == f"dinov2-vitt14{'reg' if registers else ''}-s42-fp32"
 
 
 @pytest.mark.parametrize("registers,swiglu", [(False, False), (True, False), (False, True)])
@@ -133,6 +133,7 @@ def test_official_state_dict_matches_hf_route(tmp_path, tiny_arch, registers, sw
 
 def test_hub_cache_lookup_and_missing_weights(tmp_path, monkeypatch, tiny_arch):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("FREEZE_WEIGHTS", str(tmp_path / "no-weights-here"))
     with pytest.raises(FileNotFoundError) as err:
         d2.Dinov2Encoder(model="vits14_reg")
     msg = str(err.value)
@@ -204,3 +205,39 @@ def test_parse_model_names():
     assert d2.parse_model_name("vitb14-reg4") == ("vitb14", True)
     assert d2.official_filename("vitb14_reg") == "dinov2_vitb14_reg4_pretrain.pth"
     assert d2.official_filename("vits14") == "dinov2_vits14_pretrain.pth"
+
+
+def test_weights_folder_lookup_order_and_relative_paths(tmp_path, monkeypatch, tiny_arch):
+    """Without 'weights', the weights folder is searched before the hub cache: the
+    official file first, then the HF directory; relative 'weights' are taken from it;
+    the registry passes weights_dir through; the checksum, not the place, is keyed."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.delenv("FREEZE_WEIGHTS", raising=False)
+    wdir = tmp_path / "w"
+    net = _tiny_hf()
+    hub = tmp_path / "torch" / "hub" / "checkpoints" / "dinov2_vitt14_pretrain.pth"
+    hub.parent.mkdir(parents=True)
+    torch.save(_to_official(net), hub)
+    kw = dict(model=tiny_arch, input_size=28, precision="fp32", device="cpu")
+    assert d2.Dinov2Encoder(weights_dir=str(wdir), **kw).weights_path == hub.resolve()
+    net.save_pretrained(wdir / "dinov2" / "dinov2-vitt14")  # the HF name of an unknown arch is the arch
+    assert d2.Dinov2Encoder(weights_dir=str(wdir), **kw).weights_path == (wdir / "dinov2" / "dinov2-vitt14").resolve()
+    torch.save(_to_official(net), wdir / "dinov2_vitt14_pretrain.pth")
+    enc = build_encoder({"name": "dinov2", "params": {k: v for k, v in kw.items()}}, weights_dir=wdir)
+    assert enc.weights_path == (wdir / "dinov2_vitt14_pretrain.pth").resolve()
+    monkeypatch.setenv("FREEZE_WEIGHTS", str(wdir))  # the environment names the same folder
+    assert d2.Dinov2Encoder(**kw).weights_path == enc.weights_path
+    rel = d2.Dinov2Encoder(weights="dinov2/dinov2-vitt14", **kw)
+    assert rel.weights_path == (wdir / "dinov2" / "dinov2-vitt14").resolve()
+    # same weights copied elsewhere: same cache params
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    torch.save(_to_official(net), other / "dinov2_vitt14_pretrain.pth")
+    moved = d2.Dinov2Encoder(weights_dir=str(other), **kw)
+    assert moved.weights_path.parent == other.resolve() and moved.cache_params() == enc.cache_params()
+    status = d2.weights_status(tiny_arch, weights_dir=tmp_path / "empty")
+    assert status["looked_in"][0] == str((tmp_path / "empty" / "dinov2_vitt14_pretrain.pth").resolve())
+    assert status["found"] and status["path"] == str(hub)  # the last place: the hub cache
+    with pytest.raises(d2.WeightsNotFound) as err:
+        d2.Dinov2Encoder(model="vitb14", weights_dir=str(tmp_path / "empty"))
+    assert len(err.value.looked_in) == 5 and "dinov2-base" in str(err.value)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -207,6 +209,22 @@ def test_missing_weights_fail_at_build_with_clear_message(tmp_path):
     with pytest.raises(FileNotFoundError, match="weights file not found.*chkpt.tar.*'weights' parameter"):
         build_encoder({"name": "gedi", "params": {"weights": str(missing)}})
     assert known_encoders()["gedi"] == "geometric"
+
+
+def test_relative_weights_are_taken_from_the_weights_folder(tmp_path, monkeypatch, gedi_weights):
+    wdir = tmp_path / "w"
+    (wdir / "gedi").mkdir(parents=True)
+    shutil.copy(gedi_weights, wdir / "gedi" / "chkpt.tar")
+    monkeypatch.delenv("FREEZE_WEIGHTS", raising=False)
+    enc = build_encoder({"name": "gedi", "params": {"weights": "gedi/chkpt.tar"}}, weights_dir=wdir)
+    assert enc.weights == (wdir / "gedi" / "chkpt.tar").resolve()
+    monkeypatch.setenv("FREEZE_WEIGHTS", str(wdir))
+    assert build_encoder({"name": "gedi"}).weights == enc.weights  # default: gedi/chkpt.tar there
+    direct = build_encoder({"name": "gedi", "params": {"weights": str(gedi_weights)}})
+    assert direct.cache_params() == enc.cache_params()  # keyed on the checksum, not the place
+    with pytest.raises(FileNotFoundError) as err:
+        build_encoder({"name": "gedi"}, weights_dir=tmp_path / "empty")
+    assert err.value.looked_in == [(tmp_path / "empty" / "gedi" / "chkpt.tar").resolve()]
 
 
 def test_network_output_shape_and_norm(gedi_weights):

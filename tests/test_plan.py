@@ -69,3 +69,18 @@ def test_bad_manifest_names_file_and_field(tmp_path):
 def test_unknown_encoder_lists_known_ones():
     with pytest.raises(cfg.ManifestError, match="known: .*colortex"):
         RunPlan(cfg.load_run({"datasets": "synthtiny", "visual_encoder": "nosuch"}))["synthtiny"]
+
+
+def test_short_encoder_keys_none_and_weights_dir(tmp_path):
+    run = cfg.load_run({"datasets": "synthtiny", "geometric": "fpfh-r03", "visual": "none", "weights_dir": str(tmp_path)})
+    assert (run.geometric_encoder, run.visual_encoder, run.weights_dir) == ("fpfh-r03", "none", str(tmp_path.resolve()))
+    enc = RunPlan(run).encoders
+    assert enc["visual"]["manifest"] == "none-visual" and enc["visual"]["signature"] == "novis"
+    with pytest.raises(cfg.ManifestError, match="both 'none'"):
+        cfg.load_run({"datasets": "synthtiny", "geometric": "none", "visual": "none"})
+    with pytest.raises(cfg.ManifestError, match="both 'visual' and 'visual_encoder'"):
+        cfg.load_run({"datasets": "synthtiny", "visual": "rgb", "visual_encoder": "colortex"})
+    # where the weights live is not part of any key
+    assert _keys(weights_dir=str(tmp_path)) == _keys()
+    geo_only, base = _keys(visual="none"), _keys()
+    assert geo_only["render_templates"] == base["render_templates"] and geo_only["model_features"] != base["model_features"]

@@ -47,6 +47,8 @@ def test_fuse_normalises_each_part():
     np.testing.assert_allclose(np.linalg.norm(f[:, :66], axis=1), 1.0, atol=1e-5)
     np.testing.assert_allclose(np.linalg.norm(f[:, 66:], axis=1), 1.0, atol=1e-5)
     np.testing.assert_allclose(fuse(g, None), f[:, :66])
+    # vision-only: an empty geometric part leaves the normalised visual part alone
+    np.testing.assert_allclose(fuse(np.zeros((50, 0)), v), f[:, 66:])
     with pytest.raises(ValueError, match="rows"):
         fuse(g, v[:10])
 

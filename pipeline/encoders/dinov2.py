@@ -11,9 +11,14 @@ downloaded; ``weights`` is one of
 - an official state-dict file ``dinov2_vits14_pretrain.pth`` (or ``..._reg4_...``) as
   published by facebookresearch/dinov2, whose parameter names are mapped onto the
   transformers model and loaded strictly;
-- ``None`` (default): the official file looked up in the torch hub cache,
-  ``torch.hub.get_dir()/checkpoints/`` (``$TORCH_HOME/hub/checkpoints``, by default
-  ``~/.cache/torch/hub/checkpoints``).
+- ``None`` (default): looked up, in order, as the official file or the HF directory
+  (``dinov2-small``, ``dinov2-with-registers-base``...) in the weights folder
+  (``weights_dir``: ``--config weights_dir=DIR``, else ``$FREEZE_WEIGHTS``, else
+  ``<project>/weights``, also under a ``dinov2/`` sub-folder), then as the official file
+  in the torch hub cache, ``torch.hub.get_dir()/checkpoints/``
+  (``$TORCH_HOME/hub/checkpoints``, by default ``~/.cache/torch/hub/checkpoints``).
+
+Relative ``weights`` paths are taken from the weights folder.
 
 A missing file fails when the encoder is built, naming the file and where to put it.
 
@@ -47,7 +52,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.encoders.registry import VisualEncoder, register_encoder
+from pipeline.encoders.registry import VisualEncoder, WeightsNotFound, register_encoder, resolve_weights_dir, resolve_weights_path
 
 PATCH_SIZE = 14
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -91,14 +96,51 @@ def hub_checkpoint_dir() -> Path:
     return Path(torch.hub.get_dir()) / "checkpoints"
 
 
-def weights_status(model: str = "vits14", weights: str | os.PathLike | None = None) -> dict[str, Any]:
-    """What the encoder needs and where it looks: ``{"file", "path", "found"}``."""
-    path = Path(weights).expanduser() if weights is not None else hub_checkpoint_dir() / official_filename(model)
+HF_NAMES = {"vits14": "small", "vitb14": "base", "vitl14": "large", "vitg14": "giant"}
+
+
+def hf_dirname(model: str) -> str:
+    """The Hugging Face model name without its owner, e.g. ``dinov2-small`` or
+    ``dinov2-with-registers-base``."""
+    arch, reg = parse_model_name(model)
+    return f"dinov2-{'with-registers-' if reg else ''}{HF_NAMES.get(arch, arch)}"
+
+
+def default_locations(model: str, weights_dir: str | os.PathLike | None = None) -> list[Path]:
+    """Where the weights of ``model`` are looked up when the manifest gives none, in
+    order: the official file and the HF directory in the weights folder (also under a
+    ``dinov2/`` sub-folder), then the official file in the torch hub cache."""
+    wd = resolve_weights_dir(weights_dir)
+    official, hf = official_filename(model), hf_dirname(model)
+    return [wd / official, wd / "dinov2" / official, wd / hf, wd / "dinov2" / hf, hub_checkpoint_dir() / official]
+
+
+def _usable(path: Path) -> bool:
     if path.is_dir():
-        found = (path / "config.json").is_file() and bool(_hf_weight_files(path))
-    else:
-        found = path.is_file()
-    return {"file": official_filename(model) if weights is None else path.name, "path": str(path), "found": found}
+        return (path / "config.json").is_file() and bool(_hf_weight_files(path))
+    return path.is_file()
+
+
+def find_weights(
+    model: str, weights: str | os.PathLike | None = None, weights_dir: str | os.PathLike | None = None
+) -> tuple[Path | None, list[Path]]:
+    """``(the weights to load or None, every path looked in)``. An explicit ``weights``
+    (relative to the weights folder unless absolute) is the only place looked in."""
+    if weights is not None:
+        path = resolve_weights_path(weights, weights_dir)
+        return (path if _usable(path) else None), [path]
+    places = default_locations(model, weights_dir)
+    return next((p for p in places if _usable(p)), None), places
+
+
+def weights_status(
+    model: str = "vits14", weights: str | os.PathLike | None = None, weights_dir: str | os.PathLike | None = None
+) -> dict[str, Any]:
+    """What the encoder needs and where it looks: ``{"file", "path", "found", "looked_in"}``
+    (``path`` is the file found, or the first place looked in)."""
+    found, places = find_weights(model, weights, weights_dir)
+    return {"file": official_filename(model) if weights is None else Path(weights).name,
+            "path": str(found or places[0]), "found": found is not None, "looked_in": [str(p) for p in places]}
 
 
 def _hf_weight_files(directory: Path) -> list[Path]:
@@ -298,7 +340,9 @@ class Dinov2Encoder(VisualEncoder):
     """DINOv2 patch tokens (see module docstring).
 
     model: ``vits14`` | ``vitb14`` | ``vitl14`` | ``vitg14``, optionally with ``_reg``.
-    weights: HF directory, official ``.pth`` file, or None for the torch hub cache.
+    weights: HF directory or official ``.pth`` file (relative to the weights folder unless
+    absolute), or None to look in the default places (:func:`default_locations`).
+    weights_dir: the weights folder (default ``$FREEZE_WEIGHTS`` or ``<project>/weights``).
     input_size: crop side S, a multiple of 14 (224 as in FreeZe).
     precision: ``auto`` | ``bf16`` | ``fp32``.
     device: ``auto`` (cuda if available, else cpu), ``cpu``, ``cuda``, ``cuda:1``...
@@ -316,6 +360,7 @@ class Dinov2Encoder(VisualEncoder):
         precision: str = "auto",
         device: str = "auto",
         batch_size: int = 8,
+        weights_dir: str | None = None,
     ) -> None:
         self.arch, self.registers = parse_model_name(model)
         self.model = self.arch + ("_reg" if self.registers else "")
@@ -328,29 +373,26 @@ class Dinov2Encoder(VisualEncoder):
         self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else str(device)
         self.precision = resolve_precision(precision, self.device)
 
-        expected = official_filename(self.model)
-        if weights is None:
-            path = hub_checkpoint_dir() / expected
-            if not path.is_file():
-                raise FileNotFoundError(
-                    f"dinov2: weights for {self.model} not found: put the official file {expected} "
-                    f"(from https://dl.fbaipublicfiles.com/dinov2/) in {path.parent} (the torch hub cache, "
-                    f"$TORCH_HOME/hub/checkpoints), or set the encoder param 'weights' to that file or to a "
-                    f"local Hugging Face model directory. Nothing is downloaded."
-                )
-        else:
-            path = Path(weights).expanduser()
-            if path.is_dir():
-                if not (path / "config.json").is_file() or not _hf_weight_files(path):
-                    raise FileNotFoundError(
-                        f"dinov2: {path} is not a Hugging Face model directory: it needs config.json and "
-                        f"model.safetensors (or pytorch_model.bin) of a Dinov2 model such as facebook/dinov2-small"
-                    )
-            elif not path.is_file():
-                raise FileNotFoundError(
-                    f"dinov2: weights file {path} not found: put the official {expected} there, or point "
-                    f"'weights' at a local Hugging Face model directory. Nothing is downloaded."
-                )
+        path, places = find_weights(self.model, weights, weights_dir)
+        if path is None:
+            asked = places[0]
+            if weights is None:
+                raise WeightsNotFound(
+                    f"dinov2: weights for {self.model} not found. Put the official file "
+                    f"{official_filename(self.model)} (from https://dl.fbaipublicfiles.com/dinov2/) or a local "
+                    f"Hugging Face copy of facebook/{hf_dirname(self.model)} in one of: "
+                    + ", ".join(str(p) for p in places)
+                    + " (the weights folder is --config weights_dir=DIR, $FREEZE_WEIGHTS or <project>/weights; "
+                    "the last is the torch hub cache, $TORCH_HOME/hub/checkpoints), or set the encoder param "
+                    "'weights'. Nothing is downloaded.", places)
+            if asked.is_dir():
+                raise WeightsNotFound(
+                    f"dinov2: {asked} is not a Hugging Face model directory: it needs config.json and "
+                    f"model.safetensors (or pytorch_model.bin) of a Dinov2 model such as facebook/{hf_dirname(self.model)}", places)
+            raise WeightsNotFound(
+                f"dinov2: weights file {asked} not found: put the official {official_filename(self.model)} there, "
+                f"or point 'weights' at a local Hugging Face model directory (relative paths are taken from the "
+                f"weights folder). Nothing is downloaded.", places)
         self.weights_path = path.resolve()
         self.hf_dir = self.weights_path.is_dir()
         if self.hf_dir:
@@ -377,7 +419,8 @@ class Dinov2Encoder(VisualEncoder):
 
     def signature(self) -> str:
         sig = f"dinov2-{self.arch}" + ("reg" if self.registers else "")
-        return sig if self.input_size == 224 else f"{sig}-s{self.input_size}"
+        sig = sig if self.input_size == 224 else f"{sig}-s{self.input_size}"
+        return sig if self.precision == "bf16" else f"{sig}-fp32"
 
     def cache_params(self) -> dict[str, Any]:
         return {
@@ -416,4 +459,4 @@ class Dinov2Encoder(VisualEncoder):
         return out
 
 
-register_encoder("dinov2", "visual", Dinov2Encoder)
+register_encoder("dinov2", "visual", Dinov2Encoder, weights=True)

@@ -26,8 +26,10 @@ descriptor each, concatenated (64-d). Everything runs on CPU, or CUDA when prese
 Weights: the official checkpoint (``data/chkpts/3dmatch/chkpt.tar`` of the GeDi
 repository's ``download_data.py``) is a ``torch.load`` dict whose
 ``pnet_model_state_dict`` holds the network; it is loaded with ``weights_only=True`` and
-a strict key match. Its path is the ``weights`` parameter (from the manifest); a
-missing file fails when the encoder is built.
+a strict key match. Its path is the ``weights`` parameter (from the manifest), relative
+to the weights folder (``weights_dir``, by default ``$FREEZE_WEIGHTS`` or
+``<project>/weights``) unless absolute; the default is ``gedi/chkpt.tar`` there. A
+missing file fails when the encoder is built, naming the path looked in.
 """
 
 from __future__ import annotations
@@ -44,10 +46,10 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from pipeline.encoders.gedi_ops import ball_query, furthest_point_sample, gather_points, group_points
-from pipeline.encoders.registry import GeometricEncoder, register_encoder
+from pipeline.encoders.registry import GeometricEncoder, WeightsNotFound, register_encoder, resolve_weights_path
 
 GEDI_DIM = 32
-DEFAULT_WEIGHTS = "weights/gedi/chkpt.tar"
+DEFAULT_WEIGHTS = "gedi/chkpt.tar"  # relative to the weights folder
 STATE_KEY = "pnet_model_state_dict"
 
 # --- network ---------------------------------------------------------------------------
@@ -172,7 +174,7 @@ def load_gedi_net(path: str | os.PathLike, device: str | torch.device = "cpu") -
     """The network with the weights of the checkpoint at ``path`` (strict, weights_only)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(_missing_message(path))
+        raise WeightsNotFound(_missing_message(path), [path.resolve()])
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(ckpt, dict) or STATE_KEY not in ckpt:
         keys = list(ckpt)[:8] if isinstance(ckpt, dict) else type(ckpt).__name__
@@ -191,7 +193,8 @@ def _missing_message(path: Path) -> str:
         f"gedi: weights file not found: {path.resolve()}. GeDi needs the official checkpoint "
         "(the 3DMatch 'chkpt.tar', fetched by download_data.py of the GeDi repository into "
         "data/chkpts/3dmatch/chkpt.tar). Copy it to that path, or set the encoder's "
-        "'weights' parameter in the manifest to where it is."
+        "'weights' parameter in the manifest to where it is (relative paths are taken from the "
+        "weights folder: --config weights_dir=DIR, $FREEZE_WEIGHTS, or <project>/weights)."
     )
 
 
@@ -240,7 +243,8 @@ class GeDiEncoder(GeometricEncoder):
     """GeDi descriptors of every point of a cloud, at several radii (fractions of the
     object diameter), 32-d each, concatenated.
 
-    weights: path of the official checkpoint (see the module doc).
+    weights: path of the official checkpoint (see the module doc), relative to
+    ``weights_dir`` unless absolute.
     n_lrf / n_patch: neighbours for the frame / points fed to the network.
     batch_size: keypoints per network batch. device: ``auto`` (CUDA when present),
     ``cpu`` or ``cuda``. seed: neighbour sampling seed (outputs are deterministic).
@@ -258,6 +262,7 @@ class GeDiEncoder(GeometricEncoder):
         batch_size: int = 64,
         device: str = "auto",
         seed: int = 0,
+        weights_dir: str | None = None,
     ) -> None:
         radii = [float(r) for r in radii]
         if not radii or any(r <= 0 for r in radii):
@@ -266,7 +271,7 @@ class GeDiEncoder(GeometricEncoder):
             raise ValueError(f"gedi: need 0 < n_patch <= n_lrf and batch_size > 0, got {n_patch}, {n_lrf}, {batch_size}")
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.weights = Path(weights)
+        self.weights = resolve_weights_path(weights, weights_dir)
         self.net = load_gedi_net(self.weights, device)
         self.weights_sha1 = _sha1(self.weights)
         self.device = torch.device(device)
@@ -331,4 +336,4 @@ class GeDiEncoder(GeometricEncoder):
         return np.concatenate([hits, rng.choice(hits, self.n_lrf - len(hits), replace=True)])
 
 
-register_encoder("gedi", "geometric", GeDiEncoder)
+register_encoder("gedi", "geometric", GeDiEncoder, weights=True)

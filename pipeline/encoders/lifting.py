@@ -110,6 +110,8 @@ def sample_features_at_pixels(
     feats = torch.as_tensor(np.asarray(features, dtype=np.float32))
     if feats.ndim != 3:
         raise ValueError(f"sample_features_at_pixels: features must be (D, h, w), got {tuple(feats.shape)}")
+    if feats.shape[0] == 0:  # the empty encoder of geometry-only runs
+        return np.zeros((len(np.asarray(pixels).reshape(-1, 2)), 0), np.float32)
     c = np.clip(np.rint(image_to_crop_coords(pixels, box, size)), 0, size - 1)
     # With align_corners=False, normalised coordinate -1..1 spans the outer edges of the
     # map, so crop pixel c (whose centre is at (c + 0.5) / size of the crop) maps to
@@ -158,6 +160,9 @@ def lift_model_visual_features(
     colour is blended with the background by multisampling, and at the silhouette
     the surface is seen at a grazing angle (0 keeps them).
 
+    An encoder with ``dim == 0`` (geometry-only runs) is not called; the view counts
+    are still computed.
+
     Returns ``(features (N, D) float32, view_count (N,) int32)``.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -179,7 +184,10 @@ def lift_model_visual_features(
                     f"view {start + i}: rgb {rgb.shape} and depth {np.shape(depth)} must be the same square size"
                 )
             crops.append(crop_and_resize(rgb, (0, 0, rgb.shape[0]), S_in))
-        fmaps = encoder.encode(np.stack(crops))
+        if encoder.dim:
+            fmaps = encoder.encode(np.stack(crops))
+        else:
+            fmaps = np.zeros((len(crops), 0, 1, 1), np.float32)
         for fmap, (rgb, depth, K, R, t) in zip(fmaps, chunk):
             mask = np.asarray(depth) > 0
             if erode_px > 0:

@@ -9,6 +9,16 @@ Every encoder exposes ``name``, ``kind`` (``"geometric"`` or ``"visual"``), ``ve
 (bumped whenever outputs change; part of cache keys), ``dim``, ``signature()`` (short
 readable name without ``_``, used in artifact directory names) and ``cache_params()``
 (every parameter that changes outputs, as plain JSON).
+
+Weights. Encoders registered with ``weights=True`` (``gedi``, ``dinov2``) take a
+``weights_dir`` keyword: the folder where relative ``weights`` paths of their manifests
+are resolved and where default weight files are looked up (see
+:func:`resolve_weights_dir`). It is where the files live, not what they are, so it is
+never part of a cache key; the encoders put a checksum of the weights in
+``cache_params()`` instead.
+
+``none-geometric`` and ``none-visual`` (:mod:`pipeline.encoders.none`) are the empty
+encoders (``dim == 0``) of geometry-only and vision-only runs.
 """
 
 from __future__ import annotations
@@ -17,6 +27,8 @@ import abc
 import importlib
 import importlib.util
 import json
+import os
+from pathlib import Path
 from typing import Any, Callable, Literal
 
 import numpy as np
@@ -27,7 +39,8 @@ EncoderKind = Literal["geometric", "visual"]
 # Modules whose import registers encoders, imported on first use of the registry (so
 # the registry has no import-time dependency on them, and no import cycle). Modules
 # that need weights must load them lazily, in their factories, not at import.
-_BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex", "pipeline.encoders.rgb")
+_BUILTIN_MODULES = ("pipeline.encoders.fpfh", "pipeline.encoders.colortex", "pipeline.encoders.rgb",
+                    "pipeline.encoders.none")
 # Encoders whose modules import torch (about 1 s and 150 MiB per process): registered
 # by name and imported only when one is built, so that jobs using the weight-free
 # encoders, and the Snakefile's planning, don't pay for them.
@@ -35,6 +48,33 @@ _LAZY_MODULES: dict[str, tuple[EncoderKind, str]] = {
     "dinov2": ("visual", "pipeline.encoders.dinov2"),
     "gedi": ("geometric", "pipeline.encoders.gedi"),
 }
+# Encoders that load weight files and so take the ``weights_dir`` keyword.
+_WEIGHTED: set[str] = {"dinov2", "gedi"}
+
+WEIGHTS_ENV = "FREEZE_WEIGHTS"
+
+
+class WeightsNotFound(FileNotFoundError):
+    """An encoder's weight files are missing; ``looked_in`` lists every path tried."""
+
+    def __init__(self, message: str, looked_in: list[Path]):
+        super().__init__(message)
+        self.looked_in = [Path(p) for p in looked_in]
+
+
+def resolve_weights_dir(weights_dir: str | os.PathLike | None = None) -> Path:
+    """The weights folder: ``weights_dir`` if given, else ``$FREEZE_WEIGHTS``, else
+    ``<project>/weights``. Relative paths are taken from the current directory."""
+    if weights_dir is None:
+        weights_dir = os.environ.get(WEIGHTS_ENV) or Path(__file__).resolve().parents[2] / "weights"
+    return Path(weights_dir).expanduser().resolve()
+
+
+def resolve_weights_path(path: str | os.PathLike, weights_dir: str | os.PathLike | None = None) -> Path:
+    """``path`` itself if absolute (or starting with ``~``), else relative to the weights
+    folder (:func:`resolve_weights_dir`)."""
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else resolve_weights_dir(weights_dir) / p
 
 
 class EncoderSpec(BaseModel):
@@ -133,17 +173,25 @@ _REGISTRY: dict[str, tuple[EncoderKind, EncoderFactory]] = {}
 _builtins_loaded = False
 
 
-def register_encoder(name: str, kind: EncoderKind, factory: EncoderFactory) -> None:
+def register_encoder(name: str, kind: EncoderKind, factory: EncoderFactory, *, weights: bool = False) -> None:
     """Register ``factory(**params) -> encoder`` under ``name``.
 
     Names must be non-empty and contain no ``_`` (they appear in file names and
     Snakemake wildcards). Re-registering a name replaces the previous factory.
+    ``weights=True``: the factory loads weight files and takes a ``weights_dir`` keyword.
     """
     if not name or "_" in name:
         raise ValueError(f"encoder name {name!r} must be non-empty and contain no '_'")
     if kind not in ("geometric", "visual"):
         raise ValueError(f"encoder {name!r}: kind must be 'geometric' or 'visual', got {kind!r}")
     _REGISTRY[name] = (kind, factory)
+    if weights:
+        _WEIGHTED.add(name)
+
+
+def needs_weights(name: str) -> bool:
+    """Whether the registered encoder ``name`` loads weight files."""
+    return name in _WEIGHTED
 
 
 def _load_builtins() -> None:
@@ -177,8 +225,11 @@ def known_encoders() -> dict[str, EncoderKind]:
     return {name: kind for name, (kind, _) in sorted(_REGISTRY.items())}
 
 
-def build_encoder(spec: EncoderSpec | dict[str, Any]) -> Encoder:
-    """Build the encoder described by ``spec`` (an :class:`EncoderSpec` or its dict)."""
+def build_encoder(spec: EncoderSpec | dict[str, Any], weights_dir: str | os.PathLike | None = None) -> Encoder:
+    """Build the encoder described by ``spec`` (an :class:`EncoderSpec` or its dict).
+
+    weights_dir: passed to encoders that load weights (see :func:`resolve_weights_dir`);
+    ignored by the others."""
     if not isinstance(spec, EncoderSpec):
         spec = EncoderSpec.model_validate(spec)
     _load_builtins()
@@ -186,8 +237,11 @@ def build_encoder(spec: EncoderSpec | dict[str, Any]) -> Encoder:
         known = ", ".join(f"{n} ({k})" for n, k in known_encoders().items())
         raise ValueError(f"unknown encoder {spec.name!r}; known encoders: {known}")
     kind, factory = _REGISTRY[spec.name]
+    params = dict(spec.params)
+    if weights_dir is not None and spec.name in _WEIGHTED and "weights_dir" not in params:
+        params["weights_dir"] = str(weights_dir)
     try:
-        encoder = factory(**spec.params)
+        encoder = factory(**params)
     except TypeError as exc:
         raise ValueError(f"encoder {spec.name!r}: invalid params {spec.params}: {exc}") from exc
     if encoder.kind != kind:
