@@ -63,6 +63,7 @@ wildcard_constraints:
 
 include: "stages/synth.smk"
 include: "stages/render_templates.smk"
+include: "stages/symmetries.smk"
 include: "stages/model_features.smk"
 include: "stages/segment_prior.smk"
 include: "stages/scene_features.smk"

@@ -53,13 +53,19 @@ class PairResult:
 def run_pair(dataset: str, geometric: str, visual: str, *, cores: int = 2, weights_dir: str | None = None,
              cache: Path | None = None) -> PairResult:
     """Run ``bop_all`` for one encoder pair and read its scores and job times."""
+    config = {"datasets": dataset, "geometric": geometric, "visual": visual}
+    if weights_dir:
+        config["weights_dir"] = weights_dir
+    return run_config(config, f"{geometric}+{visual}", cores=cores, cache=cache)
+
+
+def run_config(config: dict[str, str], label: str, *, cores: int = 2, cache: Path | None = None) -> PairResult:
+    """Run ``bop_all --config`` with ``config`` (one dataset) and read its scores and job times."""
     from pipeline.config import load_run
     from pipeline.plan import RunPlan
     from pipeline.store import read_manifest
 
-    config = {"datasets": dataset, "geometric": geometric, "visual": visual}
-    if weights_dir:
-        config["weights_dir"] = weights_dir
+    dataset = config["datasets"]
     env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}
     if cache:
         env["FREEZE_CACHE"] = str(cache)
@@ -72,7 +78,7 @@ def run_pair(dataset: str, geometric: str, visual: str, *, cores: int = 2, weigh
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         sys.stderr.write(proc.stdout[-3000:] + proc.stderr[-3000:])
-        raise SystemExit(f"{geometric}+{visual}: snakemake failed ({proc.returncode})")
+        raise SystemExit(f"{label}: snakemake failed ({proc.returncode})")
 
     old = os.environ.get("FREEZE_CACHE")
     if cache:
@@ -92,7 +98,7 @@ def run_pair(dataset: str, geometric: str, visual: str, *, cores: int = 2, weigh
     scores = json.loads((plan["score"].item_dir("all") / "scores.json").read_text())
     n_targets = int(scores["summary"]["n_targets"])
     return PairResult(
-        pair=f"{geometric}+{visual}",
+        pair=label,
         scores=scores["summary"],
         per_object=scores["per_object"],
         onboarding_s_per_object=job_seconds("model_features") / max(1, len(plan.obj_ids)),

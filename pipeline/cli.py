@@ -209,6 +209,48 @@ def ar_table(
         out.write_text(md)
 
 
+show_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Pictures made from the artifacts.")
+app.add_typer(show_app, name="show")
+
+
+@show_app.command("sar")
+def show_sar(
+    dataset: str = typer.Option(..., help="dataset of the run"),
+    obj: Optional[list[int]] = typer.Option(None, help="object ids (default: every object SAR ran on)"),
+    limit: int = typer.Option(4, help="estimates per object: those SAR changed first"),
+    out: Optional[Path] = typer.Option(None, help="folder for the PNGs (default <cache>/../results/figures)"),
+    config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
+) -> None:
+    """Per object, the scene crop, the ICP pose and the SAR pose over it, and every
+    symmetric variant's similarity: sar_<dataset>_obj_<id>.png."""
+    from pipeline.plan import plan_from_json, scene_item
+    from pipeline.report.sar_figure import draw_sar_figure, sar_cases
+    from pipeline.store import read_table
+
+    rp = plan_from_json(None, _overrides(config))
+    plan = rp[dataset]
+    folder = out or rp.cache.parent / "results" / "figures"
+    ids = obj
+    if not ids:
+        ids = set()
+        for scene_id in plan.scene_ids:
+            path = plan["refine"].item_dir(scene_item(scene_id)) / "sar.parquet"
+            if not path.exists():
+                console.print(f"[red]{path} missing: run the refine stage first (snakemake --cores 2 bop_all)")
+                raise typer.Exit(2)
+            ids |= set(read_table(path).obj_id.astype(int))
+    if not ids:
+        console.print(f"{dataset}: SAR ran on no estimate (no object with a geometric symmetry, or SAR off)")
+    for obj_id in sorted(ids):
+        cases = sar_cases(plan, obj_id, limit=limit)
+        if not cases:
+            console.print(f"object {obj_id}: no SAR case")
+            continue
+        path = draw_sar_figure(cases, folder / f"sar_{dataset}_obj_{obj_id:06d}.png",
+                               title=f"{dataset}, object {obj_id}: symmetry-aware refinement")
+        console.print(f"object {obj_id}: {path}")
+
+
 def main() -> None:  # pragma: no cover
     app()
 

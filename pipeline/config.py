@@ -58,7 +58,8 @@ class ModelFeaturesParams(_Strict):
 
 
 class SegmentPriorParams(_Strict):
-    top_k: int = Field(3, ge=1, description="candidates kept per (image, object), most confident first")
+    top_k: int = Field(3, ge=1, description="candidates kept per instance of a target (top_k * inst_count per "
+                                            "(image, object)), most confident first")
     min_score: float = Field(0.0, ge=0.0, description="drop detections scoring below this")
     min_area: int = Field(64, ge=1, description="drop masks with fewer pixels")
 
@@ -80,9 +81,36 @@ class RegisterParams(_Strict):
 
 
 class RefineParams(_Strict):
+    icp: bool = Field(True, description="refine every registered candidate by ICP (False: keep the RANSAC pose)")
     max_corr_frac: float = Field(0.1, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
     iterations: int = Field(30, ge=1, description="ICP iterations per threshold of the coarse-to-fine schedule")
     point_to_plane: bool = True
+    select_by: Literal["score", "inliers", "prior"] = Field(
+        "score", description="how a target's candidates are ranked: combined registration evidence (inlier "
+                             "ratio x ICP fitness), RANSAC inliers (the paper), or the prior's confidence")
+    duplicate_frac: float = Field(0.25, gt=0, description="candidates of a target whose translations are closer "
+                                                          "than this fraction of the diameter are one instance")
+    sar: bool = Field(True, description="symmetry-aware refinement of objects with geometric symmetries")
+    sar_step_deg: float = Field(30.0, gt=0, le=180, description="sampling step of continuous symmetries for SAR")
+    sar_min_gain: float = Field(0.005, ge=0, description="SAR leaves the ICP pose unless a variant's similarity "
+                                                         "beats it by more than this")
+    sar_skip_declared: bool = Field(True, description="SAR does not try variants that the dataset's models_info "
+                                                      "declares equivalent (BOP's metrics cannot tell them apart)")
+    sar_use_mask: bool = Field(True, description="SAR compares only where the candidate's mask is (occluders "
+                                                 "in front of the object stay out of the comparison)")
+    sar_centre: bool = Field(True, description="subtract each feature map's mean over the object before the "
+                                               "cosine (cancels the scene light's colour cast; the paper does not)")
+    sar_min_cover: float = Field(0.5, gt=0, le=1, description="feature cells used by SAR: those the render covers "
+                                                              "by at least this fraction")
+
+
+class SymmetriesParams(_Strict):
+    """Parameters of the per-object symmetry estimation (pipeline/geometry/symmetry.py)."""
+
+    n_points: int = Field(20000, ge=1000, description="surface samples of the model the estimation uses")
+    threshold: float = Field(0.003, gt=0, description="acceptance: symmetric mean point-to-plane distance as a "
+                                                       "fraction of the diameter")
+    seed: int = 0
 
 
 class ScoreParams(_Strict):
@@ -96,6 +124,7 @@ warnings.filterwarnings("ignore", message='Field name "register"', category=User
 
 class StageParams(_Strict):
     render_templates: RenderTemplatesParams = RenderTemplatesParams()
+    symmetries: SymmetriesParams = SymmetriesParams()
     model_features: ModelFeaturesParams = ModelFeaturesParams()
     segment_prior: SegmentPriorParams = SegmentPriorParams()
     scene_features: SceneFeaturesParams = SceneFeaturesParams()
@@ -234,6 +263,27 @@ _OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "we
 _ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder"}
 
 
+def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _read_run_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A run manifest's mapping, with ``extends: OTHER.yaml`` (relative to the file)
+    resolved: the other manifest, with this file's keys merged over it (nested
+    mappings such as ``stages.refine`` merge key by key)."""
+    data = _read_yaml(path)
+    parent = data.pop("extends", None)
+    if parent is None:
+        return data
+    base_path = (path.parent / str(parent)).resolve()
+    if base_path in seen:
+        raise ManifestError(f"{path}: field 'extends' makes a cycle through {base_path}")
+    return _deep_merge(_read_run_yaml(base_path, seen + (path.resolve(),)), data)
+
+
 def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) -> RunManifest:
     """Resolve the run manifest.
 
@@ -245,7 +295,7 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
     run_path = Path(config.pop("run", None) or path or DEFAULT_RUN)
     if not run_path.is_absolute() and not run_path.exists():
         run_path = PROJECT_ROOT / run_path
-    data = _read_yaml(run_path)
+    data = _read_run_yaml(run_path)
     for alias, key in _ALIASES.items():
         if alias in config:
             if config.get(key) not in (None, config[alias]):

@@ -23,6 +23,7 @@ from pipeline.store import MANIFEST_NAME, file_sha1, make_key, make_signature
 STAGES = (
     "synth",
     "render_templates",
+    "symmetries",
     "model_features",
     "segment_prior",
     "scene_features",
@@ -242,6 +243,10 @@ class RunPlan:
         stages["render_templates"] = self._stage(
             name, "render_templates", f"r{rt.n_views}-s{rt.image_size}",
             {**ds_params, **rt.model_dump()}, {"dataset": dataset_key})
+        sym = sp.symmetries
+        stages["symmetries"] = self._stage(
+            name, "symmetries", f"so3-n{sym.n_points}",
+            {**ds_params, **sym.model_dump()}, {"dataset": dataset_key})
         stages["model_features"] = self._stage(
             name, "model_features", enc_name,
             {**sp.model_features.model_dump(), "encoders": enc_params},
@@ -257,9 +262,11 @@ class RunPlan:
         stages["register"] = self._stage(
             name, "register", f"{enc_name}-ransac", sp.register.model_dump(),
             {"model_features": stages["model_features"].key, "scene_features": stages["scene_features"].key})
+        rf = sp.refine
+        refine_name = "+".join(["icp" if rf.icp else "coarse"] + (["sar"] if rf.sar else [])) + f"-by{rf.select_by}"
         stages["refine"] = self._stage(
-            name, "refine", "icp", {"method": run.method, **sp.refine.model_dump()},
-            {"register": stages["register"].key})
+            name, "refine", refine_name, {"method": run.method, **rf.model_dump()},
+            {"register": stages["register"].key, "symmetries": stages["symmetries"].key})
         stages["score"] = self._stage(
             name, "score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump()},
             {"refine": stages["refine"].key, "dataset": dataset_key})

@@ -25,13 +25,15 @@ def select_candidates(
     min_area: int = 1,
     source: str = "detections",
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Keep the ``top_k`` most confident detections of each target (image, object).
+    """Keep the ``top_k * inst_count`` most confident detections of each target (image,
+    object): ``top_k`` candidates per instance to find.
 
     detections: :class:`pipeline.bop.detections.Detection` items; targets: items with
-    scene_id, im_id, obj_id. Returns the candidate table (see stage segment_prior) and a
+    scene_id, im_id, obj_id and inst_count (1 if absent). Returns the candidate table (see stage segment_prior) and a
     report of what was dropped and why, plus the targets left without any candidate.
     """
     target_keys = {(t.scene_id, t.im_id, t.obj_id) for t in targets}
+    inst_count = {(t.scene_id, t.im_id, t.obj_id): max(1, int(getattr(t, "inst_count", 1))) for t in targets}
     dropped: Counter[str] = Counter()
     per_target: dict[tuple[int, int, int], list[tuple[float, int, Any]]] = defaultdict(list)
     image_time: dict[tuple[int, int], float] = {}
@@ -51,7 +53,7 @@ def select_candidates(
         ranked = sorted(per_target[key], key=lambda x: (-x[0], x[1]))
         kept = 0
         for score, idx, det in ranked:
-            if kept >= top_k:
+            if kept >= top_k * inst_count[key]:
                 dropped["beyond_top_k"] += 1
                 continue
             rle = rle_uncompressed(det.segmentation)

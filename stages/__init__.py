@@ -15,6 +15,7 @@ from types import ModuleType
 STAGE_MODULES = {
     "synth": "stages.synth",
     "render_templates": "stages.render_templates",
+    "symmetries": "stages.symmetries",
     "model_features": "stages.model_features",
     "segment_prior": "stages.segment_prior",
     "scene_features": "stages.scene_features",

@@ -1,7 +1,8 @@
 rule refine:
     """ICP refinement of the selected poses of one scene."""
     input:
-        lambda wc: str(PLAN[wc.ds]["register"].manifest(f"scene_{wc.scene}")),
+        register=lambda wc: str(PLAN[wc.ds]["register"].manifest(f"scene_{wc.scene}")),
+        symmetries=lambda wc: [str(PLAN[wc.ds]["symmetries"].manifest(obj_item(o))) for o in PLAN[wc.ds].obj_ids],
     output:
         f"{CACHE}/{{ds}}/refine/{{sig}}/scene_{{scene}}/_manifest.json",
     params:

@@ -4,7 +4,8 @@ One row per kept candidate mask: cand_id, scene_id, im_id, obj_id, score, bbox
 (x, y, w, h px), area (mask pixels), height, width, rle_counts (uncompressed COCO RLE,
 column-major, starting with background), det_index (position in the source file) and
 prior_time (s, the detector's time for that image). Only detections of (image,
-object) pairs that are targets are kept, the top-k most confident per pair.
+object) pairs that are targets are kept, the ``top_k * inst_count`` most confident per
+pair (top_k per instance to find).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 from pipeline.plan import DatasetPlan
 from pipeline.store import publish, write_table
 
-CODE_VERSION = 1
+CODE_VERSION = 2
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:

@@ -178,3 +178,48 @@ def test_apply_pca_zeroes_components_without_signal():
     np.testing.assert_array_equal(apply_pca(fit_pca(X, 3, min_variance=1e-3), X), 0.0)
     # min_variance=0 keeps everything (the paper's plain PCA), even constant features.
     assert fit_pca(np.ones((10, 4)), 4, min_variance=0.0).informative
+
+
+# --- choosing estimates per target ---------------------------------------------------
+
+
+def _cands(rows):
+    import pandas as pd
+
+    cols = ["cand_id", "scene_id", "im_id", "obj_id", "t", "evidence", "n_inliers", "prior_score"]
+    return pd.DataFrame([dict(zip(cols, r)) for r in rows], columns=cols)
+
+
+def test_select_estimates_keeps_distinct_instances_in_rank_order():
+    from types import SimpleNamespace as T
+
+    from pipeline.registration.selection import select_estimates
+
+    # target (1, 0, 7) has two instances, 100 mm apart; candidates 0 and 1 are the same
+    # instance (5 mm apart, diameter 80 mm); candidate 3 is weak; object 9 is one instance
+    cands = _cands([
+        (0, 1, 0, 7, [0, 0, 500], 0.60, 90, 0.5),
+        (1, 1, 0, 7, [5, 0, 500], 0.70, 80, 0.9),
+        (2, 1, 0, 7, [100, 0, 500], 0.40, 70, 0.8),
+        (3, 1, 0, 7, [-100, 0, 500], 0.10, 10, 0.95),
+        (4, 1, 0, 9, [0, 50, 400], 0.30, 50, 0.6),
+        (5, 1, 0, 9, [0, 90, 400], 0.50, 40, 0.7),
+        (6, 1, 1, 9, [0, 0, 400], 0.50, 40, 0.7),  # image 1 has no target
+    ])
+    targets = [T(scene_id=1, im_id=0, obj_id=7, inst_count=2), T(scene_id=1, im_id=0, obj_id=9, inst_count=1)]
+    diam = {7: 80.0, 9: 80.0}
+    out = select_estimates(cands, targets, diam, by="score").set_index("cand_id")
+    assert sorted(out.index[out.selected]) == [1, 2, 5]
+    assert out.loc[1, "rank"] == 0 and out.loc[2, "rank"] == 1
+    assert out.loc[0, "note"] == "duplicate of 1" and out.loc[3, "note"] == "beyond inst_count"
+    assert out.loc[6, "note"] == "not a target" and out.loc[4, "note"] == "beyond inst_count"
+    # the paper's rule (most inliers) and the prior's ranking choose differently
+    by_inliers = select_estimates(cands, targets, diam, by="inliers").set_index("cand_id")
+    assert sorted(by_inliers.index[by_inliers.selected]) == [0, 2, 4]
+    by_prior = select_estimates(cands, targets, diam, by="prior").set_index("cand_id")
+    assert sorted(by_prior.index[by_prior.selected]) == [1, 3, 5]
+    # a smaller duplicate radius keeps both hypotheses of the first instance
+    tight = select_estimates(cands, targets, diam, by="score", duplicate_frac=0.05).set_index("cand_id")
+    assert sorted(tight.index[tight.selected]) == [0, 1, 5]
+    with pytest.raises(ValueError, match="'by'"):
+        select_estimates(cands, targets, diam, by="luck")

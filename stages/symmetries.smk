@@ -1,0 +1,12 @@
+rule symmetries:
+    """Geometric symmetries of one object, estimated from its model."""
+    input:
+        dataset_input,
+    output:
+        f"{CACHE}/{{ds}}/symmetries/{{sig}}/obj_{{obj}}/_manifest.json",
+    params:
+        item=lambda wc: f"obj_{wc.obj}",
+    log:
+        f"{LOGS}/{{ds}}/symmetries/{{sig}}/obj_{{obj}}.log",
+    shell:
+        stage_shell("symmetries")
