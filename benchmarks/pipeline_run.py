@@ -40,8 +40,6 @@ def main() -> None:
 
     rp = RunPlan(load_run({"datasets": args.dataset}))
     if args.fresh:
-        # Snakemake does not rebuild missing intermediates of an up-to-date target, so
-        # the AR table goes too.
         shutil.rmtree(rp.cache / args.dataset, ignore_errors=True)
         (rp.cache.parent / "results" / "ar_table.md").unlink(missing_ok=True)
     cmd = [str(Path(sys.executable).parent / "snakemake"), "--cores", str(args.cores), "bop_all",
