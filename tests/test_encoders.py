@@ -200,3 +200,23 @@ def test_empty_encoders_give_zero_channels_and_lifting_skips_them():
     view = (np.zeros((32, 32, 3), np.uint8), depth, K, np.eye(3), np.array([0.0, 0.0, 100.0]))
     feats, count = lift_model_visual_features(model, [view], Exploding(), diameter=100.0)
     assert feats.shape == (len(model), 0) and (count == 1).all()
+
+
+def test_every_encoder_manifest_builds_or_names_its_missing_weights(tmp_path, monkeypatch):
+    """Each manifest validates; built against an empty weights folder it either needs no
+    weights or fails with WeightsNotFound listing the paths it looked in."""
+    from pipeline.config import MANIFEST_DIR, load_encoder_manifest
+    from pipeline.encoders.registry import WeightsNotFound, needs_weights
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no hub-cache weights either
+    names = sorted(p.stem for p in (MANIFEST_DIR / "encoders").glob("*.yaml"))
+    assert {"fpfh", "colortex", "gedi", "dinov2-vits14", "none-visual", "none-geometric"} <= set(names)
+    for name in names:
+        man = load_encoder_manifest(name)
+        spec = EncoderSpec(name=man.encoder, params=dict(man.params))
+        if needs_weights(man.encoder):
+            with pytest.raises(WeightsNotFound) as err:
+                build_encoder(spec, weights_dir=tmp_path / "empty")
+            assert err.value.looked_in and all(str(tmp_path) in str(p) or "hub" in str(p) for p in err.value.looked_in)
+        else:
+            assert build_encoder(spec, weights_dir=tmp_path / "empty").kind == man.kind
