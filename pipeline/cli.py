@@ -251,6 +251,16 @@ def show_sar(
         console.print(f"object {obj_id}: {path}")
 
 
+def _register_commands() -> None:
+    """Commands that live in their own modules (each has ``register(app, show_app)``)."""
+    from pipeline import inspect_cli
+
+    inspect_cli.register(app, show_app)
+
+
+_register_commands()
+
+
 def main() -> None:  # pragma: no cover
     app()
 
