@@ -253,9 +253,10 @@ def show_sar(
 
 def _register_commands() -> None:
     """Commands that live in their own modules (each has ``register(app, show_app)``)."""
-    from pipeline import inspect_cli
+    from pipeline import estimate_cli, inspect_cli
 
-    inspect_cli.register(app, show_app)
+    for module in (inspect_cli, estimate_cli):
+        module.register(app, show_app)
 
 
 _register_commands()
