@@ -73,7 +73,8 @@ include: "stages/score.smk"
 
 
 rule bop_all:
-    """Every stage on every dataset of the run; prints and writes the AR table.
+    """Every stage on every dataset of the run; prints and writes the AR table and
+    writes each dataset's HTML report (results/report_<dataset>.html).
 
     It has no output file on purpose, so it runs on every call (about a second): the
     table is always that of the current run, and Snakemake cannot skip the stages of a
@@ -87,6 +88,8 @@ rule bop_all:
         os.path.join(LOGS, "bop_all.log"),
     shell:
         f"{PY} -m pipeline.cli table --out {{params.table}} > {{log}} 2>&1"
+        + "".join(f" && {PY} -m pipeline.cli report --dataset {ds} --out {os.path.join(RESULTS, f'report_{ds}.html')}"
+                  " >> {log} 2>&1" for ds in DATASETS)
 
 
 onsuccess:

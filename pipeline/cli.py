@@ -254,8 +254,9 @@ def show_sar(
 def _register_commands() -> None:
     """Commands that live in their own modules (each has ``register(app, show_app)``)."""
     from pipeline import estimate_cli, inspect_cli
+    from pipeline.report import cli as report_cli
 
-    for module in (inspect_cli, estimate_cli):
+    for module in (inspect_cli, report_cli, estimate_cli):
         module.register(app, show_app)
 
 

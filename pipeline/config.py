@@ -85,9 +85,10 @@ class RefineParams(_Strict):
     max_corr_frac: float = Field(0.1, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
     iterations: int = Field(30, ge=1, description="ICP iterations per threshold of the coarse-to-fine schedule")
     point_to_plane: bool = True
-    select_by: Literal["score", "inliers", "prior"] = Field(
+    select_by: Literal["score", "inliers", "prior", "fitness"] = Field(
         "score", description="how a target's candidates are ranked: combined registration evidence (inlier "
-                             "ratio x ICP fitness), RANSAC inliers (the paper), or the prior's confidence")
+                             "ratio x ICP fitness), RANSAC inliers (the paper), the prior's confidence, or "
+                             "the ICP fitness alone")
     duplicate_frac: float = Field(0.25, gt=0, description="candidates of a target whose translations are closer "
                                                           "than this fraction of the diameter are one instance")
     sar: bool = Field(True, description="symmetry-aware refinement of objects with geometric symmetries")

@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # Install everything on a fresh Debian machine with Python 3.11 (idempotent):
-# the Debian packages headless pyrender needs (EGL/Mesa), a virtual environment in
-# .venv, and the project with its pinned torch==2.13.0 (CPU wheel).
+# the Debian packages headless pyrender needs (EGL/Mesa) and headless Chromium (the
+# report's rendering test), a virtual environment in .venv, and the project with its
+# pinned torch==2.13.0 (CPU wheel).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
-DEB_PACKAGES="libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1"
+DEB_PACKAGES="libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 chromium"
 missing=""
 for p in $DEB_PACKAGES; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"

@@ -4,10 +4,7 @@ seen from Snakemake's own dry-run job lists."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,21 +12,13 @@ import pytest
 
 from pipeline.bop import read_results_csv
 
+from conftest import current_dir, run_snakemake
+
 ROOT = Path(__file__).resolve().parent.parent
-SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 
 
 def _snakemake(workdir: Path, *args: str, dry: bool = False) -> str:
-    env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}
-    env.update(FREEZE_CACHE=str(workdir / "cache"), PYOPENGL_PLATFORM="egl", HF_HUB_OFFLINE="1")
-    cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "--cores", "2", "bop_all"]
-    if dry:
-        cmd.append("-n")
-    proc = subprocess.run(cmd + ["--config", "datasets=synthtiny", *args], env=env,
-                          capture_output=True, text=True, timeout=900)
-    out = proc.stdout + proc.stderr
-    assert proc.returncode == 0, out[-4000:]
-    return out
+    return run_snakemake(workdir, *args, dry=dry)
 
 
 def _planned_jobs(out: str) -> dict[str, int]:
@@ -40,33 +29,27 @@ def _planned_jobs(out: str) -> dict[str, int]:
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    work = tmp_path_factory.mktemp("pipeline")
-    out = _snakemake(work)
-    return work, out
-
-
 @pytest.mark.slow
 def test_bop_all_produces_scores_and_a_bop_csv(tiny_run):
     work, out = tiny_run
     assert "BOP19 average recall" in out
-    manifests = sorted((work / "cache" / "synthtiny" / "score").glob("*/all/_manifest.json"))
+    manifests = sorted(current_dir(work, "score").glob("*/_manifest.json"))
     assert len(manifests) == 1
     summary = json.loads(manifests[0].read_text())["summary"]
     for key in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD"):
         assert 0.0 <= summary[key] <= 1.0
     assert summary["AR"] == pytest.approx((summary["AR_VSD"] + summary["AR_MSSD"] + summary["AR_MSPD"]) / 3)
-    csv = next((work / "cache" / "synthtiny" / "refine").glob("*/all/freeze_synthtiny-test.csv"))
+    csv = current_dir(work, "refine") / "all" / "freeze_synthtiny-test.csv"
     results = read_results_csv(csv)
     assert len(results) == summary["n_estimates"] > 0
     # One time per image, as BOP requires.
     assert (results.groupby(["scene_id", "im_id"]).time.nunique() == 1).all()
     assert (work / "results" / "ar_table.md").read_text().count("synthtiny") == 1
+    assert "<html" in (work / "results" / "report_synthtiny.html").read_text()[:500].lower()  # bop_all's report
     # The per-object PCA bases are stored and orthonormal.
     from pipeline.store import load_arrays
 
-    pca = load_arrays(next((work / "cache" / "synthtiny" / "register").glob("*/scene_*/pca.zarr")))
+    pca = load_arrays(current_dir(work, "register") / "scene_000001" / "pca.zarr")
     assert len(pca["obj_id"]) >= 2
     for comps in pca["components"]:
         assert np.allclose(comps @ comps.T, np.eye(len(comps)), atol=1e-4)
@@ -159,7 +142,7 @@ def test_multi_instance_targets_get_distinct_hypotheses(tiny_run):
     diameter = bop.models_info()[6].diameter
     targets = {(t.im_id, t.obj_id): t.inst_count for t in bop.targets(root / "test_targets_bop19.json")}
     assert targets[(0, 6)] == 2 and targets[(1, 6)] == 2
-    poses = read_table(next((cache / "refine").glob("icp+sar-byscore-*/scene_000001/poses.parquet")))
+    poses = read_table(current_dir(work, "refine") / "scene_000001" / "poses.parquet")
     for (im_id, obj_id), group in poses.groupby(["im_id", "obj_id"]):
         assert len(group) <= targets[(im_id, obj_id)]
         ts = np.stack(group.t.map(np.asarray).to_list())
@@ -168,7 +151,7 @@ def test_multi_instance_targets_get_distinct_hypotheses(tiny_run):
                 assert np.linalg.norm(ts[a] - ts[b]) > 0.25 * diameter  # never one instance twice
 
     geo, vis = build_encoders(load_run({"datasets": "synthtiny"}))
-    model = load_arrays(next((cache / "model_features").glob("fpfh-ms+colortex-*/obj_000006/features.zarr")))
+    model = load_arrays(current_dir(work, "model_features") / "obj_000006" / "features.zarr")
     basis = fit_pca(model["visual"], 64)
     model_fused = fuse(model["geometric"], apply_pca(basis, model["visual"]))
     im_id = 0
@@ -214,11 +197,11 @@ def test_symmetries_and_sar_artifacts(tiny_run):
     work, _ = tiny_run
     cache = work / "cache" / "synthtiny"
     sym = {int(p.parent.name[4:]): json.loads(p.read_text())
-           for p in (cache / "symmetries").glob("*/obj_*/symmetries.json")}
+           for p in current_dir(work, "symmetries").glob("obj_*/symmetries.json")}
     assert sorted(sym) == [2, 5, 6]
     assert (sym[2]["n_continuous"], sym[2]["n_discrete"]) == (1, 1)  # can: its axis + a flip
     assert (sym[5]["n_continuous"], sym[5]["n_discrete"]) == (0, 11)  # hex nut
-    refine = next((cache / "refine").glob("icp+sar-byscore-*/scene_000001"))
+    refine = current_dir(work, "refine") / "scene_000001"
     poses = read_table(refine / "poses.parquet")
     sar = read_table(refine / "sar.parquet")
     can = poses[poses.obj_id == 2]

@@ -221,5 +221,9 @@ def test_select_estimates_keeps_distinct_instances_in_rank_order():
     # a smaller duplicate radius keeps both hypotheses of the first instance
     tight = select_estimates(cands, targets, diam, by="score", duplicate_frac=0.05).set_index("cand_id")
     assert sorted(tight.index[tight.selected]) == [0, 1, 5]
+    # ICP fitness alone: candidate 3 fits best for object 7, candidate 4 for object 9
+    by_fitness = select_estimates(cands.assign(fitness=[0.5, 0.6, 0.7, 0.9, 0.8, 0.2, 0.1]), targets, diam,
+                                  by="fitness").set_index("cand_id")
+    assert sorted(by_fitness.index[by_fitness.selected]) == [2, 3, 4]
     with pytest.raises(ValueError, match="'by'"):
         select_estimates(cands, targets, diam, by="luck")

@@ -30,7 +30,7 @@ def estimate_score(inlier_ratio: float, fitness: float) -> float:
     return float(max(0.0, min(1.0, inlier_ratio)) * max(0.0, min(1.0, fitness)))
 
 
-RANK_COLUMNS = {"score": "evidence", "inliers": "n_inliers", "prior": "prior_score"}
+RANK_COLUMNS = {"score": "evidence", "inliers": "n_inliers", "prior": "prior_score", "fitness": "fitness"}
 """The column each ranking rule of :func:`select_estimates` sorts by."""
 
 
@@ -48,7 +48,8 @@ def select_estimates(
     t (3 floats, mm), evidence (:func:`estimate_score`), n_inliers and prior_score.
     Candidates of a target are taken in order of ``by`` (``"score"``: the evidence;
     ``"inliers"``: RANSAC inliers, the paper's rule; ``"prior"``: the localisation
-    prior's confidence), ties broken by the other two and then cand_id; a candidate
+    prior's confidence; ``"fitness"``: the ICP fitness alone), ties broken by the
+    evidence, inliers and prior score and then cand_id; a candidate
     whose translation lies within ``duplicate_frac * diameter`` of one already kept for
     the target is a duplicate hypothesis of the same instance and is skipped.
 
@@ -67,7 +68,7 @@ def select_estimates(
         return out
     keys = [RANK_COLUMNS[by]] + [c for c in ("evidence", "n_inliers", "prior_score") if c != RANK_COLUMNS[by]]
     ordered = out.sort_values(["scene_id", "im_id", "obj_id", *keys, "cand_id"],
-                              ascending=[True, True, True, False, False, False, True])
+                              ascending=[True, True, True] + [False] * len(keys) + [True])
     for (scene_id, im_id, obj_id), group in ordered.groupby(["scene_id", "im_id", "obj_id"], sort=False):
         limit = want.get((int(scene_id), int(im_id), int(obj_id)), 0)
         radius = duplicate_frac * diameters[int(obj_id)]

@@ -1,0 +1,45 @@
+"""Shared fixtures: one `snakemake bop_all` run on the tiny synthetic dataset per test
+session, used by the pipeline, report and other end-to-end tests."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SNAKEMAKE = Path(sys.executable).parent / "snakemake"
+
+
+def run_snakemake(workdir: Path, *args: str, dry: bool = False) -> str:
+    """`snakemake bop_all --config datasets=synthtiny ARGS` in ``workdir`` (its cache in
+    ``workdir/cache``); returns the output, failing the test on a non-zero exit."""
+    env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}
+    env.update(FREEZE_CACHE=str(workdir / "cache"), PYOPENGL_PLATFORM="egl", HF_HUB_OFFLINE="1")
+    cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "--cores", "2", "bop_all"]
+    if dry:
+        cmd.append("-n")
+    proc = subprocess.run(cmd + ["--config", "datasets=synthtiny", *args], env=env,
+                          capture_output=True, text=True, timeout=900)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> tuple[Path, str]:
+    """(work dir, output) of the main job on `synthtiny` with the default run manifest."""
+    work = tmp_path_factory.mktemp("pipeline")
+    return work, run_snakemake(work)
+
+
+def current_dir(work: Path, stage: str, **overrides: str) -> Path:
+    """The artifact folder of ``stage`` in the synthtiny plan of the default run (with
+    ``overrides``) under ``work/cache``: other configurations' folders may sit beside it."""
+    from pipeline.config import load_run
+    from pipeline.plan import RunPlan
+
+    return RunPlan(load_run({"datasets": "synthtiny", **overrides}), cache=work / "cache")["synthtiny"][stage].dir
