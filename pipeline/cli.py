@@ -11,19 +11,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from pipeline.cli_common import parse_overrides
+
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="FreeZe: training-free zero-shot 6D pose estimation, as a cached BOP pipeline.")
 console = Console(stderr=True)
-
-
-def _overrides(config: list[str] | None) -> dict[str, str]:
-    out = {}
-    for kv in config or []:
-        if "=" not in kv:
-            raise typer.BadParameter(f"expected key=value, got '{kv}'")
-        k, v = kv.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
 
 
 @app.command()
@@ -57,7 +49,7 @@ def stage(
     from stages import stage_module
 
     store.mark_job_start()
-    plan = plan_from_json(run_json, _overrides(config))[dataset]
+    plan = plan_from_json(run_json, parse_overrides(config))[dataset]
     sp = plan[name]
     if expect_sig and sp.signature != expect_sig:
         console.print(f"[red]stage {name} of {dataset}: the plan's signature is {sp.signature}, but {expect_sig} was "
@@ -123,7 +115,7 @@ def plan(
     """Print every stage's signature and artifact folder."""
     from pipeline.plan import plan_from_json
 
-    rp = plan_from_json(None, _overrides(config))
+    rp = plan_from_json(None, parse_overrides(config))
     table = Table("dataset", "stage", "signature", "folder")
     for ds in dataset or rp.run.datasets:
         ok, why = rp.available(ds)
@@ -191,7 +183,7 @@ def ar_table(
     from pipeline.plan import plan_from_json
     from pipeline.store import read_manifest
 
-    rp = plan_from_json(run_json, _overrides(config))
+    rp = plan_from_json(run_json, parse_overrides(config))
     rows = {}
     for ds in rp.run.datasets:
         ok, why = rp.available(ds)
@@ -227,7 +219,7 @@ def show_sar(
     from pipeline.report.sar_figure import draw_sar_figure, sar_cases
     from pipeline.store import read_table
 
-    rp = plan_from_json(None, _overrides(config))
+    rp = plan_from_json(None, parse_overrides(config))
     plan = rp[dataset]
     folder = out or rp.cache.parent / "results" / "figures"
     ids = obj

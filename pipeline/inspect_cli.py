@@ -17,18 +17,8 @@ from rich.table import Table
 from rich.markup import escape
 from rich.tree import Tree
 
+from pipeline.cli_common import parse_overrides
 from pipeline.artifacts import human_bytes
-
-
-def parse_overrides(config: list[str] | None) -> dict[str, str]:
-    """``["k=v", ...]`` -> ``{"k": "v"}`` (the run overrides of ``--config``)."""
-    out = {}
-    for kv in config or []:
-        if "=" not in kv:
-            raise typer.BadParameter(f"expected key=value, got '{kv}'")
-        k, v = kv.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
 
 
 def _out() -> Console:

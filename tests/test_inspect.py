@@ -19,7 +19,6 @@ from typer.testing import CliRunner
 
 from pipeline.config import load_run
 from pipeline.artifacts import ArtifactIndex, Removal, collect_garbage, inspect_artifact, list_artifacts
-from pipeline.inspect_cli import register
 from pipeline.plan import RunPlan
 from pipeline.report.features_figure import (DPI, FIGSIZE, FeatureCase, draw_features_figure, feature_case,
                                              fused_features, inlier_matches, pca_colours)
@@ -34,10 +33,9 @@ runner = CliRunner()
 
 
 def _app() -> typer.Typer:
-    app = typer.Typer()
-    show = typer.Typer()
-    app.add_typer(show, name="show")
-    register(app, show)
+    """The real `freeze` app (the commands' wiring is part of what is tested)."""
+    from pipeline.cli import app
+
     return app
 
 

@@ -195,7 +195,6 @@ def test_symmetries_and_sar_artifacts(tiny_run):
     from pipeline.store import read_table
 
     work, _ = tiny_run
-    cache = work / "cache" / "synthtiny"
     sym = {int(p.parent.name[4:]): json.loads(p.read_text())
            for p in current_dir(work, "symmetries").glob("obj_*/symmetries.json")}
     assert sorted(sym) == [2, 5, 6]

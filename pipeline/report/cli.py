@@ -12,19 +12,10 @@ from typing import Optional
 import typer
 from rich.console import Console
 
+from pipeline.cli_common import parse_overrides
+
 # soft_wrap: messages hold paths, which must stay whole for copying (and for tests).
 console = Console(stderr=True, soft_wrap=True)
-
-
-def _overrides(config: list[str] | None) -> dict[str, str]:
-    """``["k=v", ...]`` -> ``{"k": "v"}`` (run manifest overrides, as ``--config`` of Snakemake)."""
-    out = {}
-    for kv in config or []:
-        if "=" not in kv:
-            raise typer.BadParameter(f"expected key=value, got '{kv}'", param_hint="--config")
-        k, v = kv.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
 
 
 def run_label(overrides: dict[str, str]) -> str:
@@ -60,7 +51,7 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         from pipeline.plan import plan_from_json
         from pipeline.report.html import default_out, write_report
 
-        overrides = _overrides(config)
+        overrides = parse_overrides(config)
         label = "as passed by Snakemake ($FREEZE_RUN_JSON)" if run_json else run_label(overrides)
         try:
             rp = plan_from_json(run_json, overrides)

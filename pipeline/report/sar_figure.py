@@ -94,7 +94,7 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     import pandas as pd
 
     from pipeline.encoders.lifting import crop_and_resize, square_crop_box
-    from pipeline.plan import build_encoders, obj_item, scene_item
+    from pipeline.plan import build_encoders, scene_item
     from pipeline.refinement.sar import render_in_crop
     from pipeline.render import Renderer
     from pipeline.store import read_table
