@@ -243,6 +243,44 @@ def show_sar(
         console.print(f"object {obj_id}: {path}")
 
 
+datasets_app = typer.Typer(add_completion=False, no_args_is_help=True, help="BOP datasets on disk.")
+app.add_typer(datasets_app, name="datasets")
+
+
+@datasets_app.command("check")
+def datasets_check(
+    root: Path = typer.Argument(..., exists=True, file_okay=False, help="bop_root: the folder holding lmo/, tless/, ..."),
+    as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
+) -> None:
+    """Check every BOP dataset found under ROOT before a long run: the files and fields
+    each stage needs, units, targets without images, the prior; print a summary per
+    dataset. Exits with 1 when a dataset has errors."""
+    from pipeline.datasets_check import check_root
+
+    reports, absent = check_root(root)
+    if as_json:
+        print(json.dumps({"datasets": [r.to_json() for r in reports], "absent": absent}, indent=1))
+    else:
+        table = Table("dataset", "objects", "scenes", "images", "targets", "instances per target", "detections",
+                      "status", title=f"BOP datasets under {root}")
+        for r in reports:
+            s = r.summary
+            ipt = ", ".join(f"{k}: {v}" for k, v in s.get("instances_per_target", {}).items())
+            table.add_row(r.name, *(str(s.get(k, "-")) for k in ("objects", "scenes", "images", "targets")), ipt or "-",
+                          str(s.get("detections", "-")),
+                          "[green]ok" if r.ok else f"[red]{len(r.errors)} error(s)")
+        Console(width=max(120, Console().width)).print(table)
+        for r in reports:
+            for e in r.errors:
+                console.print(f"[red]{r.name}: {e}")
+            for w in r.warnings:
+                console.print(f"[yellow]{r.name}: {w}")
+        if absent:
+            console.print(f"not found under {root}: {', '.join(absent)}")
+    if any(not r.ok for r in reports):
+        raise typer.Exit(1)
+
+
 def _register_commands() -> None:
     """Commands that live in their own modules (each has ``register(app, show_app)``)."""
     from pipeline import estimate_cli, inspect_cli

@@ -58,3 +58,38 @@ def test_bop_all_dry_run_over_a_bop_root(bop_root, tmp_path):
                  "refine", "score", "bop_all"):
         assert rule in jobs
     assert "synth" not in jobs.split()
+
+
+def test_datasets_check_summarises_and_names_problems(bop_root, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    result = CliRunner().invoke(app, ["datasets", "check", str(bop_root), "--json"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    assert [d["name"] for d in out["datasets"]] == ["lmo"]
+    assert sorted(out["absent"]) == sorted(set(CORE) - {"lmo"})
+    lmo = out["datasets"][0]
+    assert lmo["ok"] and lmo["errors"] == []
+    assert lmo["summary"] | {"detections": None} == {
+        "objects": 3, "scenes": 1, "images": 2, "targets": 5, "instances": 7,
+        "instances_per_target": {"1": 3, "2": 2}, "images_with_problems": 0, "detections": None}
+
+    # A broken copy: metre models, a missing depth image, no prior.
+    broken = tmp_path / "bop"
+    shutil.copytree(bop_root / "lmo", broken / "lmo")
+    info_path = broken / "lmo" / "models" / "models_info.json"
+    info = json.loads(info_path.read_text())
+    info["2"]["diameter"] = 0.09
+    info_path.write_text(json.dumps(info))
+    depth = sorted((broken / "lmo" / "test" / "000001" / "depth").iterdir())[0]
+    depth.unlink()
+    result = CliRunner().invoke(app, ["datasets", "check", str(broken), "--json"])
+    assert result.exit_code == 1
+    errors = json.loads(result.stdout)["datasets"][0]["errors"]
+    assert any("object 2: field 'diameter' is 0.09" in e and "metres" in e for e in errors)
+    assert any("no depth/ image for target image 0" in e for e in errors)
+    assert any("cnos-fastsam_lmo-test.json: localisation prior not found" in e for e in errors)
