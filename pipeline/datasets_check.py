@@ -100,9 +100,18 @@ def check_dataset(bop_root: Path, manifest) -> DatasetReport:
             if problems:
                 missing_images += 1
                 rep.errors.extend(problems)
-    prior = Path(bop_root) / manifest.prior
+    from pipeline.config import ManifestError
+    from pipeline.plan import resolve_prior
+
     n_detections = None
-    if not prior.is_file():
+    try:
+        prior = resolve_prior(Path(bop_root), manifest.prior)
+    except ManifestError as e:
+        rep.errors.append(str(e))
+        prior = None
+    if prior is None:
+        pass
+    elif not prior.is_file():
         rep.errors.append(f"{prior}: localisation prior not found (field 'prior' of manifests/datasets/{manifest.name}.yaml)")
     else:
         try:

@@ -54,6 +54,20 @@ def parse_item(item: str) -> tuple[str, int | None]:
     return item, None
 
 
+def resolve_prior(base: Path, pattern: str) -> Path:
+    """The prior file ``base / pattern``; ``pattern`` may hold glob characters (the BOP
+    default detection files carry a suffix after ``<method>_<dataset>-test``), and must
+    then match exactly one file. Raises ``ManifestError`` naming the pattern otherwise."""
+    path = Path(base) / pattern
+    if not any(c in pattern for c in "*?["):
+        return path.resolve()
+    matches = sorted(Path(base).glob(pattern))
+    if len(matches) != 1:
+        found = ", ".join(str(m) for m in matches) if matches else "no file"
+        raise cfg.ManifestError(f"{path}: the prior pattern (field 'prior') must match exactly one file, found {found}")
+    return matches[0].resolve()
+
+
 def item_id(item: str, kind: str, stage: str) -> int:
     """The id in ``item`` (``obj_000005`` -> 5), checking it is of ``kind`` for ``stage``."""
     got, num = parse_item(item)
@@ -111,7 +125,7 @@ class DatasetPlan:
     @property
     def prior_path(self) -> Path:
         base = self.root if self.dataset.kind == "synthetic" else Path(self.run.bop_root or ".")
-        return (base / self.dataset.prior).resolve()
+        return resolve_prior(base, self.dataset.prior)
 
     @property
     def results_csv_name(self) -> str:
@@ -228,7 +242,7 @@ class RunPlan:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
             obj_ids, scene_ids, dataset_key = _bop_layout(root, ds)
-            prior_file = Path(run.bop_root) / ds.prior
+            prior_file = resolve_prior(Path(run.bop_root), ds.prior)
             if not prior_file.exists():
                 raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
             prior_key = file_sha1(prior_file)

@@ -19,7 +19,7 @@ def test_core_manifests_carry_what_differs():
     for name, (split_type, vsd_delta) in CORE.items():
         ds = cfg.load_dataset_manifest(name)
         assert (ds.kind, ds.folder, ds.split, ds.split_type, ds.vsd_delta) == ("bop", name, "test", split_type, vsd_delta)
-        assert ds.prior == f"detections/cnos-fastsam_{name}-test.json"
+        assert ds.prior == f"detections/cnos-fastsam_{name}-test*.json"
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,9 @@ def bop_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("bop")
     generate(root / "lmo", name="lmo", preset="tiny", seed=0, progress=False)
     (root / "detections").mkdir()
-    shutil.move(root / "lmo" / "detections" / "cnos-synth_lmo-test.json", root / "detections" / "cnos-fastsam_lmo-test.json")
+    # named as BOP distributes default detections: method_dataset-test plus a suffix
+    shutil.move(root / "lmo" / "detections" / "cnos-synth_lmo-test.json",
+                root / "detections" / "cnos-fastsam_lmo-test_0a1b2c3d.json")
     return root
 
 
@@ -44,7 +46,7 @@ def test_only_the_datasets_found_are_planned(bop_root):
         assert not ok and why == f"{name}: skipped, {bop_root / name / 'test_targets_bop19.json'} not found"
     plan = rp["lmo"]
     assert plan.obj_ids == [2, 5, 6] and plan.scene_ids == [1]
-    assert plan.prior_path == (bop_root / "detections" / "cnos-fastsam_lmo-test.json").resolve()
+    assert plan.prior_path == (bop_root / "detections" / "cnos-fastsam_lmo-test_0a1b2c3d.json").resolve()
     assert "synth" not in plan.stages  # a dataset on disk: its fingerprint heads the chain
 
 
@@ -92,4 +94,17 @@ def test_datasets_check_summarises_and_names_problems(bop_root, tmp_path):
     errors = json.loads(result.stdout)["datasets"][0]["errors"]
     assert any("object 2: field 'diameter' is 0.09" in e and "metres" in e for e in errors)
     assert any("no depth/ image for target image 0" in e for e in errors)
-    assert any("cnos-fastsam_lmo-test.json: localisation prior not found" in e for e in errors)
+    assert any("cnos-fastsam_lmo-test*.json: the prior pattern (field 'prior') must match exactly one file, "
+               "found no file" in e for e in errors)
+
+
+def test_prior_pattern_must_match_one_file(tmp_path):
+    from pipeline.plan import resolve_prior
+
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "cnos-fastsam_lmo-test_a.json").write_text("[]")
+    assert resolve_prior(tmp_path, "d/cnos-fastsam_lmo-test*.json").name == "cnos-fastsam_lmo-test_a.json"
+    assert resolve_prior(tmp_path, "d/plain.json") == (tmp_path / "d" / "plain.json").resolve()  # no pattern: as is
+    (tmp_path / "d" / "cnos-fastsam_lmo-test_b.json").write_text("[]")
+    with pytest.raises(cfg.ManifestError, match="must match exactly one file, found .*_a.json, .*_b.json"):
+        resolve_prior(tmp_path, "d/cnos-fastsam_lmo-test*.json")
