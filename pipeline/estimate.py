@@ -197,19 +197,17 @@ def _imread(path: Path, what: str, flags: int) -> np.ndarray:
 
 
 def load_rgb(path: Path | str) -> np.ndarray:
-    """(H, W, 3) uint8 RGB; grey is replicated, alpha dropped, 16-bit reduced to 8."""
+    """(H, W, 3) uint8 RGB; grey is replicated, alpha dropped, 16-bit reduced to 8
+    (the BOP reader's conversion, :func:`pipeline.bop.dataset.decoded_to_rgb`)."""
     import cv2
 
+    from pipeline.bop.dataset import decoded_to_rgb
+
     im = _imread(Path(path), "RGB", cv2.IMREAD_UNCHANGED)
-    if im.dtype == np.uint16:
-        im = (im >> 8).astype(np.uint8)
-    if im.dtype != np.uint8:
-        raise EstimateError(f"{path}: RGB image of type {im.dtype}; expected 8-bit")
-    if im.ndim == 2:
-        return np.repeat(im[:, :, None], 3, axis=2)
-    if im.shape[2] == 4:
-        return cv2.cvtColor(im, cv2.COLOR_BGRA2RGB)
-    return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
+    try:
+        return decoded_to_rgb(im, path)
+    except ValueError as e:
+        raise EstimateError(str(e)) from None
 
 
 def load_depth(path: Path | str, depth_scale: float) -> np.ndarray:
@@ -277,21 +275,6 @@ def parse_bbox(text: str | Sequence[float]) -> tuple[float, float, float, float]
     if vals[2] <= 0 or vals[3] <= 0:
         raise EstimateError(f"--bbox: width and height must be positive, got {text!r}")
     return vals  # type: ignore[return-value]
-
-
-def parse_overrides(items: Sequence[str] | Mapping[str, Any] | None) -> dict[str, Any]:
-    """``["k=v", ...]`` -> dict. Values stay strings (``load_run`` types them)."""
-    if items is None:
-        return {}
-    if isinstance(items, Mapping):
-        return dict(items)
-    out: dict[str, Any] = {}
-    for kv in items:
-        if "=" not in kv:
-            raise EstimateError(f"--config: expected key=value, got '{kv}'")
-        k, v = kv.split("=", 1)
-        out[k.strip()] = v.strip()
-    return out
 
 
 def load_run_manifest(overrides: Mapping[str, Any] | None = None):
@@ -448,9 +431,8 @@ def _build_model_cache(folder: Path, key: str, params: dict, sha1: str, path: Pa
                        steps: Steps) -> None:
     """render_templates, symmetries and model_features of one model into ``folder``."""
     global MODEL_BUILDS
-    from pipeline.encoders.lifting import lift_model_visual_features
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.symmetry import SymmetryParams, SymmetrySet, estimate_symmetries
+    from pipeline.geometry.symmetry import SymmetrySet
+    from pipeline.model_side import model_features, save_model_features, symmetry_record
     from pipeline.render import Renderer
     from pipeline.render.templates import TemplateViews, render_templates, template_views
     from pipeline.store import item_seed, publish, save_arrays
@@ -475,32 +457,18 @@ def _build_model_cache(folder: Path, key: str, params: dict, sha1: str, path: Pa
                 tpl = render_templates(r, OBJ_ID, views)
             save_arrays(w.dir / "templates.zarr", tpl, attrs={"key": key, "obj_id": OBJ_ID, "diameter": diameter})
         with steps("symmetries"):
-            points, normals = sample_surface(mesh, sy.n_points, seed=item_seed(key, "symmetries", sy.seed))
-            details: dict = {}
-            sym = estimate_symmetries(points, diameter, normals, SymmetryParams(threshold=sy.threshold, seed=sy.seed),
-                                      details=details)
-            doc = {"obj_id": OBJ_ID, "estimated": sym.to_dict(), "declared": SymmetrySet().to_dict(),
-                   "n_discrete": len(sym.discrete), "n_continuous": len(sym.continuous),
-                   "threshold_mm": float(details.get("threshold_mm", sy.threshold * diameter)),
-                   "rejected_best_mm": details.get("rejected_best"), "seconds": details.get("seconds")}
+            sym, doc = symmetry_record(mesh, diameter, n_points=sy.n_points,
+                                       sample_seed=item_seed(key, "symmetries", sy.seed), threshold=sy.threshold,
+                                       seed=sy.seed, declared=SymmetrySet(), obj_id=OBJ_ID)
             (w.dir / "symmetries.json").write_text(json.dumps(doc, indent=1) + "\n")
         steps.note(f"symmetries: {len(sym.discrete)} discrete, {len(sym.continuous)} continuous")
         with steps(f"model features ({mf.n_points} points)"):
-            points, normals = sample_surface(mesh, mf.n_points, seed=item_seed(key, "model_features", mf.seed))
-            geometric = geo.encode(points, normals, diameter)
-            tviews = [(tpl["rgb"][i], tpl["depth"][i], tpl["K"][i], tpl["R"][i], tpl["t"][i]) for i in range(len(tpl["rgb"]))]
-            visual, view_count = lift_model_visual_features(points, tviews, vis, batch_size=mf.batch_size, diameter=diameter)
-            n = len(points)
-            save_arrays(
-                w.dir / "features.zarr",
-                {"points": points.astype(np.float32), "normals": normals.astype(np.float32),
-                 "geometric": geometric.astype(np.float32), "visual": visual.astype(np.float32),
-                 "view_count": view_count.astype(np.int32)},
-                chunks={"points": (n, 3), "normals": (n, 3), "geometric": (n, geometric.shape[1]),
-                        "visual": (n, visual.shape[1]), "view_count": (n,)},
-                attrs={"key": key, "obj_id": OBJ_ID, "diameter": diameter,
-                       "geometric_encoder": geo.signature(), "visual_encoder": vis.signature()},
-            )
+            f = model_features(mesh, tpl, geo, vis, diameter, n_points=mf.n_points,
+                               seed=item_seed(key, "model_features", mf.seed), batch_size=mf.batch_size)
+            save_model_features(w.dir / "features.zarr", f,
+                                {"key": key, "obj_id": OBJ_ID, "diameter": diameter,
+                                 "geometric_encoder": geo.signature(), "visual_encoder": vis.signature()})
+            n, view_count = len(f["points"]), f["view_count"]
         w.summary.update({"model_file": str(path.resolve()), "model_sha1": sha1, "diameter_mm": diameter,
                           "n_views": rt.n_views, "n_points": int(n), "n_discrete": len(sym.discrete),
                           "n_continuous": len(sym.continuous), "points_unseen": int((view_count == 0).sum()),
@@ -686,7 +654,7 @@ def estimate(
     depth_scale: float | None = None,
     model_scale: float = 1.0,
     out_dir: Path | str | None = None,
-    overrides: Mapping[str, Any] | Sequence[str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
     cache: Path | str | None = None,
     progress: bool = False,
     console: Any = None,
@@ -707,7 +675,7 @@ def estimate(
     if (mask is None) == (bbox is None):
         raise EstimateError("give exactly one localisation prior: --mask MASK.png or --bbox x,y,w,h")
     with steps("inputs"):
-        run = load_run_manifest(parse_overrides(overrides))
+        run = load_run_manifest(overrides)
         cam = load_camera(camera)
         for name, p in (("model", model), ("RGB", rgb), ("depth", depth)):
             if not Path(p).is_file():

@@ -45,6 +45,7 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         from rich.console import Console
 
         from pipeline.bop.errors import BopFormatError
+        from pipeline.cli_common import parse_overrides
         from pipeline.config import ManifestError
         from pipeline.estimate import EstimateError, estimate
 
@@ -52,7 +53,8 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         console.print(f"[bold]freeze estimate[/] {model.name} in {rgb.name} -> {out}")
         try:
             res = estimate(model, rgb, depth, camera, mask=mask, bbox=bbox, depth_scale=depth_scale,
-                           model_scale=model_scale, out_dir=out, overrides=config, progress=progress, console=console)
+                           model_scale=model_scale, out_dir=out, overrides=parse_overrides(config), progress=progress,
+                           console=console)
         except (EstimateError, ManifestError, BopFormatError) as e:
             console.print(f"[red]error:[/] {e}")
             raise typer.Exit(1)

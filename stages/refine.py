@@ -90,7 +90,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     chosen = table[table.selected].sort_values(["im_id", "obj_id", "rank"])
     # The CSV score is the ranking value, so that BOP's matching order agrees with ours.
     poses = chosen.assign(score=chosen[RANK_COLUMNS[p.select_by]].astype(float), sar_variant=-1, sar_reason="")
-    sar_rows = _symmetry_aware_refinement(plan, item, poses, image_time, progress) if len(poses) else []
+    sar_rows = _symmetry_aware_refinement(plan, bop, item, poses, image_time, progress) if len(poses) else []
     images = pd.DataFrame([{"scene_id": scene_id, "im_id": k, "time_s": v} for k, v in sorted(image_time.items())],
                           columns=["scene_id", "im_id", "time_s"])
     with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
@@ -107,7 +107,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         })
 
 
-def _symmetry_aware_refinement(plan: DatasetPlan, item: str, poses: pd.DataFrame, image_time: dict[int, float],
+def _symmetry_aware_refinement(plan: DatasetPlan, bop, item: str, poses: pd.DataFrame, image_time: dict[int, float],
                                progress: bool) -> list[dict]:
     """Run SAR on the kept estimates of symmetric objects, updating ``poses`` in place
     (R, t, sar_variant, sar_reason) and ``image_time``; returns the per-variant rows."""
@@ -127,7 +127,7 @@ def _symmetry_aware_refinement(plan: DatasetPlan, item: str, poses: pd.DataFrame
     if vis_enc.dim == 0:
         poses["sar_reason"] = "no visual encoder"
         return []
-    infos = plan.bop().models_info()
+    infos = bop.models_info()
     transforms: dict[int, np.ndarray] = {}
     for obj_id in sorted(set(poses.obj_id.astype(int))):
         sym = load_symmetries(plan, obj_id)
@@ -141,7 +141,6 @@ def _symmetry_aware_refinement(plan: DatasetPlan, item: str, poses: pd.DataFrame
         "no symmetry" + (" beyond the declared ones" if p.sar_skip_declared else ""))
     if not todo:
         return []
-    bop = plan.bop()
     scene_id = item_id(item, "scene", "refine")
     cams = bop.scene_camera(scene_id)
     boxes = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet")

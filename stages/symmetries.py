@@ -23,28 +23,17 @@ CODE_VERSION = 1
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.symmetry import SymmetryParams, SymmetrySet, estimate_symmetries
+    from pipeline.geometry.symmetry import SymmetrySet
+    from pipeline.model_side import symmetry_record
 
     obj_id = item_id(item, "obj", "symmetries")
     sp = plan["symmetries"]
     p = plan.run.stages.symmetries
     bop = plan.bop()
     info = plan.model_info(bop, obj_id)
-    points, normals = sample_surface(bop.load_model(obj_id), p.n_points, seed=item_seed(sp.key, item, p.seed))
-    details: dict = {}
-    sym = estimate_symmetries(points, info.diameter, normals, SymmetryParams(threshold=p.threshold, seed=p.seed),
-                              details=details)
-    doc = {
-        "obj_id": obj_id,
-        "estimated": sym.to_dict(),
-        "declared": SymmetrySet.from_model_info(info).to_dict(),
-        "n_discrete": len(sym.discrete),
-        "n_continuous": len(sym.continuous),
-        "threshold_mm": float(details.get("threshold_mm", p.threshold * info.diameter)),
-        "rejected_best_mm": details.get("rejected_best"),
-        "seconds": details.get("seconds"),
-    }
+    _, doc = symmetry_record(bop.load_model(obj_id), info.diameter, n_points=p.n_points,
+                             sample_seed=item_seed(sp.key, item, p.seed), threshold=p.threshold, seed=p.seed,
+                             declared=SymmetrySet.from_model_info(info), obj_id=obj_id)
     with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
         (w.dir / "symmetries.json").write_text(json.dumps(doc, indent=1) + "\n")
         w.summary.update({k: doc[k] for k in ("obj_id", "n_discrete", "n_continuous", "threshold_mm", "rejected_best_mm")})

@@ -175,6 +175,21 @@ def parse_models_info(path: Path, content: Any) -> dict[int, ModelInfo]:
 # ---------------------------------------------------------------------------- reader
 
 
+def decoded_to_rgb(im: np.ndarray, path: Path | str) -> np.ndarray:
+    """An image as ``cv2.imread(..., IMREAD_UNCHANGED)`` returns it -> (H, W, 3) uint8 RGB:
+    16-bit grey (ITODD-like) keeps its top 8 bits, grey is replicated to 3 channels,
+    alpha is dropped. ``path`` only names the file in the error for other dtypes."""
+    if im.dtype == np.uint16:
+        im = (im >> 8).astype(np.uint8)
+    if im.dtype != np.uint8:
+        raise BopFormatError(f"{path}: unsupported image dtype {im.dtype}")
+    if im.ndim == 2:
+        return np.repeat(im[:, :, None], 3, axis=2)
+    if im.shape[2] == 4:
+        return cv2.cvtColor(im, cv2.COLOR_BGRA2RGB)
+    return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
+
+
 class BopDataset:
     """Read-only view of one split of a BOP dataset.
 
@@ -399,15 +414,7 @@ class BopDataset:
         im = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if im is None:
             raise BopFormatError(f"{path}: cannot decode image")
-        if im.dtype == np.uint16:  # 16-bit grey (ITODD-like): keep the top 8 bits
-            im = (im >> 8).astype(np.uint8)
-        if im.dtype != np.uint8:
-            raise BopFormatError(f"{path}: unsupported image dtype {im.dtype}")
-        if im.ndim == 2:
-            return np.repeat(im[:, :, None], 3, axis=2)
-        if im.shape[2] == 4:
-            return cv2.cvtColor(im, cv2.COLOR_BGRA2RGB)
-        return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
+        return decoded_to_rgb(im, path)
 
     def depth_path(self, scene_id: int, im_id: int) -> Path | None:
         return self._find_image(scene_id, im_id, ("depth",), _DEPTH_EXTS)

@@ -1,8 +1,8 @@
 """Lifting dense 2D feature maps to 3D points, as in FreeZe.
 
-Crop geometry. A crop box ``(x0, y0, side)`` (ints, image pixels) is the square of
-image pixels ``[x0, x0+side) x [y0, y0+side)``; it is resized to ``size x size``. With
-pixel centres at integer coordinates, image pixel ``u`` maps to crop coordinate
+Crop geometry: :mod:`pipeline.geometry.crops` (re-exported here). A crop box
+``(x0, y0, side)`` is the square of image pixels ``[x0, x0+side)^2`` resized to
+``size x size``; image pixel ``u`` maps to crop coordinate
 ``c = (u - x0 + 0.5) * size/side - 0.5`` (the convention of ``cv2.resize``).
 
 Feature maps. A visual encoder returns ``(D, h, w)`` per crop; cell ``j`` covers crop
@@ -28,69 +28,22 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.distance import pdist
 
 from pipeline.encoders.registry import VisualEncoder
+from pipeline.geometry.crops import (  # re-exported: the crop geometry of lifting
+    CropBox,
+    crop_and_resize,
+    image_to_crop_coords,
+    mask_to_bbox,
+    square_crop_box,
+)
 from pipeline.geometry.depth import lift_depth
 
-CropBox = tuple[int, int, int]
 View = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
-
-def mask_to_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """BOP bbox ``(x, y, w, h)`` (ints, pixels) of the True pixels of ``mask`` (H, W)."""
-    v, u = np.nonzero(np.asarray(mask, dtype=bool))
-    if len(u) == 0:
-        raise ValueError("mask_to_bbox: the mask is empty")
-    return int(u.min()), int(v.min()), int(u.max() - u.min() + 1), int(v.max() - v.min() + 1)
-
-
-def square_crop_box(
-    bbox_xywh: Sequence[float], image_hw: tuple[int, int], margin: float = 0.1
-) -> CropBox:
-    """Square box ``(x0, y0, side)`` centred on ``bbox_xywh`` (BOP ``x, y, w, h`` pixels).
-
-    side = ceil(max(w, h) * (1 + 2 * margin)): ``margin`` is added on each side as a
-    fraction of the longer bbox side. The box may extend beyond the image (``image_hw``
-    = (H, W) is only used to check that the bbox lies on the image); cropping pads with
-    zeros.
-    """
-    x, y, w, h = (float(v) for v in bbox_xywh)
-    H, W = image_hw
-    if w <= 0 or h <= 0:
-        raise ValueError(f"square_crop_box: bbox width and height must be positive, got {bbox_xywh}")
-    if x >= W or y >= H or x + w <= 0 or y + h <= 0:
-        raise ValueError(f"square_crop_box: bbox {bbox_xywh} lies outside the {W}x{H} image")
-    side = max(1, int(math.ceil(max(w, h) * (1.0 + 2.0 * margin))))
-    x0 = int(round(x + 0.5 * w - 0.5 * side))
-    y0 = int(round(y + 0.5 * h - 0.5 * side))
-    return x0, y0, side
-
-
-def crop_and_resize(image: np.ndarray, box: CropBox, size: int) -> np.ndarray:
-    """Crop ``box`` from ``image`` (H, W, C) or (H, W) and resize to ``size x size``.
-
-    Pixels outside the image are zero. Area interpolation when shrinking, bilinear when
-    enlarging. Keeps the dtype.
-    """
-    x0, y0, side = (int(v) for v in box)
-    img = np.asarray(image)
-    H, W = img.shape[:2]
-    out_shape = (side, side) + img.shape[2:]
-    crop = np.zeros(out_shape, dtype=img.dtype)
-    sx0, sy0 = max(x0, 0), max(y0, 0)
-    sx1, sy1 = min(x0 + side, W), min(y0 + side, H)
-    if sx1 > sx0 and sy1 > sy0:
-        crop[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = img[sy0:sy1, sx0:sx1]
-    if side == size:
-        return crop
-    interp = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
-    return cv2.resize(crop, (size, size), interpolation=interp)
-
-
-def image_to_crop_coords(pixels: np.ndarray, box: CropBox, size: int) -> np.ndarray:
-    """Image pixel coordinates (P, 2) (u, v) -> crop coordinates (P, 2) float64."""
-    x0, y0, side = box
-    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    scale = size / side
-    return (px - np.array([x0, y0], dtype=np.float64) + 0.5) * scale - 0.5
+__all__ = [
+    "CropBox", "View", "crop_and_resize", "image_to_crop_coords", "lift_model_visual_features",
+    "lift_scene_visual_features", "mask_to_bbox", "point_cloud_diameter", "sample_features_at_pixels",
+    "square_crop_box", "upsample_to_crop",
+]
 
 
 def upsample_to_crop(features: np.ndarray, size: int) -> np.ndarray:

@@ -32,7 +32,7 @@ from typing import Hashable, Sequence
 import cv2
 import numpy as np
 
-from pipeline.encoders.lifting import CropBox, crop_and_resize, square_crop_box
+from pipeline.geometry.crops import CropBox, crop_and_resize, square_crop_box
 from pipeline.encoders.registry import VisualEncoder
 from pipeline.render.renderer import Lighting, Renderer
 from pipeline.render.templates import TEMPLATE_LIGHTING

@@ -206,22 +206,10 @@ def _square_box(bbox: tuple[float, float, float, float], margin: float, min_side
 
 
 def _crop(image: np.ndarray, box: tuple[int, int, int], size: int) -> np.ndarray:
-    """``box`` of ``image`` (H, W[, C]) resized to ``size`` x ``size``; white off the image.
+    """``box`` of ``image`` (H, W[, C]) resized to ``size`` x ``size``; white off the image."""
+    from pipeline.geometry.crops import crop_and_resize
 
-    (Like :func:`pipeline.encoders.lifting.crop_and_resize`, which pads with black and
-    whose module imports torch: two seconds the report need not spend.)
-    """
-    import cv2
-
-    x0, y0, side = box
-    H, W = image.shape[:2]
-    out = np.full((side, side) + image.shape[2:], 255 if image.dtype == np.uint8 else 0, dtype=image.dtype)
-    sx0, sy0, sx1, sy1 = max(x0, 0), max(y0, 0), min(x0 + side, W), min(y0 + side, H)
-    if sx1 > sx0 and sy1 > sy0:
-        out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = image[sy0:sy1, sx0:sx1]
-    if side == size:
-        return out
-    return cv2.resize(out, (size, size), interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR)
+    return crop_and_resize(image, box, size, fill=255 if image.dtype == np.uint8 else 0)
 
 
 def _crop_mask(mask: np.ndarray, box: tuple[int, int, int], size: int) -> np.ndarray:

@@ -93,7 +93,7 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     those where SAR changed the pose first (largest gain first), then unchanged ones."""
     import pandas as pd
 
-    from pipeline.encoders.lifting import crop_and_resize, square_crop_box
+    from pipeline.geometry.crops import crop_and_resize, square_crop_box
     from pipeline.plan import build_encoders, scene_item
     from pipeline.refinement.sar import render_in_crop
     from pipeline.render import Renderer
