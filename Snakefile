@@ -19,6 +19,8 @@ for _ds in RUN.datasets:
     _ok, _why = PLAN.available(_ds)
     if _ok:
         DATASETS.append(_ds)
+        for _note in PLAN.notes(_ds):
+            print(_note, file=sys.stderr)
     else:
         print(_why, file=sys.stderr)
 # Jobs rebuild the plan from this variable. It is deliberately not a rule param:
@@ -87,7 +89,7 @@ rule bop_all:
     log:
         os.path.join(LOGS, "bop_all.log"),
     shell:
-        f"{PY} -m pipeline.cli table --out {{params.table}} > {{log}} 2>&1"
+        f"{PY} -m pipeline.cli table --out {{params.table}} --csv-dir {RESULTS} > {{log}} 2>&1"
         + "".join(f" && {PY} -m pipeline.cli report --dataset {ds} --out {os.path.join(RESULTS, f'report_{ds}.html')}"
                   " >> {log} 2>&1" for ds in DATASETS)
 

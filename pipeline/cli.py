@@ -173,11 +173,28 @@ def _print_scores(rows: dict[str, dict]) -> str:
     return "\n".join(md) + "\n"
 
 
+def _publish_csv(plan, folder: Path) -> Path:
+    """Copy the dataset's results CSV into ``folder`` atomically (a temporary sibling
+    renamed into place); returns the copy."""
+    import os
+    import shutil
+
+    src = plan["refine"].item_dir("all") / plan.results_csv_name
+    folder.mkdir(parents=True, exist_ok=True)
+    dst = folder / plan.results_csv_name
+    tmp = folder / f".{dst.name}.tmp"
+    shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+    return dst
+
+
 @app.command("table")
 def ar_table(
     config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
     run_json: Optional[str] = typer.Option(None, envvar="FREEZE_RUN_JSON", help="resolved run manifest as JSON (Snakemake passes it in $FREEZE_RUN_JSON)"),
     out: Optional[Path] = typer.Option(None, help="also write the table as Markdown here"),
+    csv_dir: Optional[Path] = typer.Option(None, help="also copy each dataset's BOP results CSV "
+                                                      "(<method>_<dataset>-<split>.csv) into this folder"),
 ) -> None:
     """Print the AR table of the run's datasets from their score artifacts."""
     from pipeline.plan import plan_from_json
@@ -195,7 +212,13 @@ def ar_table(
             rows[ds] = read_manifest(path)["summary"]
         except FileNotFoundError:
             console.print(f"{ds}: not scored yet ({path} missing): run `snakemake --cores 2 bop_all`")
+            continue
+        if csv_dir:
+            _publish_csv(rp[ds], csv_dir)
     md = _print_scores(rows)
+    for ds, s in rows.items():
+        for note in s.get("notes") or []:
+            console.print(f"{ds}: {note}")
     if out:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(md)
@@ -251,23 +274,28 @@ app.add_typer(datasets_app, name="datasets")
 def datasets_check(
     root: Path = typer.Argument(..., exists=True, file_okay=False, help="bop_root: the folder holding lmo/, tless/, ..."),
     as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
+    prior: Optional[str] = typer.Option(None, help="priors to check instead of the default detections, as in "
+                                                   "--config prior=... (detector names or paths, comma-separated)"),
 ) -> None:
     """Check every BOP dataset found under ROOT before a long run: the files and fields
     each stage needs, units, targets without images, the prior; print a summary per
     dataset. Exits with 1 when a dataset has errors."""
     from pipeline.datasets_check import check_root
 
-    reports, absent = check_root(root)
+    reports, absent = check_root(root, [p for p in prior.split(",") if p] if prior else None)
     if as_json:
         print(json.dumps({"datasets": [r.to_json() for r in reports], "absent": absent}, indent=1))
     else:
         table = Table("dataset", "objects", "scenes", "images", "targets", "instances per target", "detections",
-                      "status", title=f"BOP datasets under {root}")
+                      "image size", "ground truth", "status", title=f"BOP datasets under {root}")
         for r in reports:
             s = r.summary
             ipt = ", ".join(f"{k}: {v}" for k, v in s.get("instances_per_target", {}).items())
             table.add_row(r.name, *(str(s.get(k, "-")) for k in ("objects", "scenes", "images", "targets")), ipt or "-",
                           str(s.get("detections", "-")),
+                          "x".join(map(str, s["image_size"])) if len(s.get("image_size") or []) == 2
+                          and isinstance(s["image_size"][0], int) else str(s.get("image_size", "-")),
+                          "-" if "ground_truth" not in s else "yes" if s["ground_truth"] else "private/absent",
                           "[green]ok" if r.ok else f"[red]{len(r.errors)} error(s)")
         Console(width=max(120, Console().width)).print(table)
         for r in reports:

@@ -11,7 +11,8 @@ All are validated by the pydantic models below; a bad value fails with the file 
 the field. Snakemake's ``--config`` may override a few top-level run keys with plain
 strings (``datasets=a,b``, ``geometric_encoder=...`` or its short form ``geometric=...``,
 ``visual_encoder=...`` or ``visual=...``, ``weights_dir=...``, ``bop_root=...``,
-``method=...``, ``run=manifests/runs/other.yaml``). An encoder may be ``none``
+``method=...``, ``prior=sam6d-fastsam[,cnos-fastsam]`` or its long form ``priors=...``,
+``run=manifests/runs/other.yaml``). An encoder may be ``none``
 (geometry-only or vision-only runs), not both.
 """
 
@@ -62,6 +63,12 @@ class SegmentPriorParams(_Strict):
                                             "(image, object)), most confident first")
     min_score: float = Field(0.0, ge=0.0, description="drop detections scoring below this")
     min_area: int = Field(64, ge=1, description="drop masks with fewer pixels")
+    merge_iou: float = Field(0.5, gt=0, le=1, description="several prior files: a detection whose mask overlaps a "
+                                                          "more confident one of another file by this IoU is the "
+                                                          "same instance and is dropped")
+    category_ids: Literal["obj_id", "index0", "index1"] = Field(
+        "obj_id", description="what a detection's category_id means: the BOP obj_id (BOP's convention), or a 0-/1-based "
+                              "position in the dataset's sorted object ids (some detector exports)")
 
 
 class SceneFeaturesParams(_Strict):
@@ -159,10 +166,50 @@ class DatasetManifest(_Strict):
     preset: str | None = None
     seed: int = 0
     # where the localisation prior lives; relative to the dataset root (synthetic) or
-    # to bop_root (real datasets)
+    # to bop_root (real datasets); may hold glob characters (must match one file) and
+    # a "{detector}" placeholder filled from `detector` or the run's `priors`
     prior: str
-    # real datasets: folder name under bop_root
+    detector: str | None = Field(None, description="default detector name put in the prior's {detector} placeholder")
+    # real datasets: folder name under bop_root, and what differs between them
     folder: str | None = None
+    obj_ids: list[int] | None = Field(None, description="the dataset's object ids (BOP dataset_params)")
+    models: str = Field("models", description="model folder used for onboarding (T-LESS: models_cad); scores "
+                                              "always use models_eval, as BOP does")
+    camera_file: str | None = Field(None, description="camera file when it is not camera[_<split_type>].json "
+                                                      "(YCB-V: camera_uw.json)")
+    image_dir: Literal["rgb", "gray"] = Field("rgb", description="image folder of the split; 'gray' datasets get "
+                                                                 "grey templates and grey SAR renders")
+    image_ext: str = Field(".png", description="extension of the images")
+    depth_ext: str = Field(".png", description="extension of the depth images")
+    image_size: tuple[int, int] | None = Field(None, description="test image (width, height) in px")
+    public_gt: bool = Field(True, description="false when the test ground truth is private (ITODD, HB): the "
+                                              "results CSV is made for the BOP server and no AR is computed here")
+
+    @property
+    def image_mode(self) -> str:
+        """"gray" or "rgb": how templates and SAR renders are coloured to look like the images."""
+        return "gray" if self.image_dir == "gray" else "rgb"
+
+    def prior_patterns(self, priors: list[str] | None = None) -> list[str]:
+        """The prior file patterns of this dataset for a run's ``priors`` (None: the
+        dataset's default). An entry with a '/' or ending in '.json' is a path pattern
+        itself, in which ``{dataset}`` stands for the dataset's name; any other is a
+        detector name put in the ``{detector}`` placeholder."""
+        out = []
+        for entry in priors or [self.detector or ""]:
+            if "/" in entry or entry.endswith(".json"):
+                out.append(entry.replace("{dataset}", self.name))
+            elif "{detector}" in self.prior:
+                if not entry:
+                    raise ManifestError(f"dataset '{self.name}': field 'prior' has a {{detector}} placeholder "
+                                        "but no field 'detector' and the run names no priors")
+                out.append(self.prior.replace("{detector}", entry))
+            elif entry and entry != self.detector:
+                raise ManifestError(f"dataset '{self.name}': prior '{entry}' asked for, but its field 'prior' "
+                                    f"({self.prior}) has no {{detector}} placeholder; give a path instead")
+            else:
+                out.append(self.prior)
+        return out
 
     @field_validator("name")
     @classmethod
@@ -193,6 +240,10 @@ class RunManifest(_Strict):
     geometric_encoder: str = "fpfh"
     visual_encoder: str = "colortex"
     bop_root: str | None = None
+    priors: list[str] | None = Field(
+        None, description="localisation priors to use instead of each dataset's default: detector names (filled "
+                          "into the dataset's prior pattern, e.g. sam6d-fastsam) or path patterns relative to "
+                          "bop_root; several are merged (see segment_prior.merge_iou)")
     weights_dir: str | None = Field(
         None, description="folder of encoder weights (default $FREEZE_WEIGHTS or <project>/weights); "
                           "not part of any cache key: the encoders key on weight checksums")
@@ -259,9 +310,9 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
 
 
 # Flat keys that `snakemake --config key=value` may set.
-_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method")
+_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method", "priors")
 # Short forms accepted on the command line.
-_ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder"}
+_ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder", "prior": "priors"}
 
 
 def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
@@ -304,7 +355,7 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
             config[key] = config.pop(alias)
     for key, value in config.items():
         if key in _OVERRIDES and value is not None:
-            if key == "datasets" and isinstance(value, str):
+            if key in ("datasets", "priors") and isinstance(value, str):
                 value = [v for v in value.split(",") if v]
             if key == "weights_dir":
                 # stage jobs may run elsewhere: fix a relative folder to where it was given

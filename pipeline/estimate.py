@@ -654,6 +654,7 @@ def estimate(
     depth_scale: float | None = None,
     model_scale: float = 1.0,
     out_dir: Path | str | None = None,
+    bop_name: str | None = None,
     overrides: Mapping[str, Any] | None = None,
     cache: Path | str | None = None,
     progress: bool = False,
@@ -666,14 +667,24 @@ def estimate(
     depth unit (default: the camera file's ``depth_scale``, else 1). model_scale:
     multiplies the model's coordinates (1000 for a model in metres). out_dir: where to
     write ``pose.json``, ``overlay.png``, ``points.png`` and the artifacts (nothing
-    written when None). overrides: run-manifest overrides (:func:`load_run_manifest`).
+    written when None), and the frame as a one-image BOP dataset
+    ``<out_dir>/bop/<bop_name>`` with its prior ``<out_dir>/bop/detections/`` (see
+    :func:`pipeline.bop.wrap.wrap_frame`; a previous one of that name is replaced, as
+    the other outputs are). bop_name: default :func:`pipeline.bop.wrap.default_name`
+    of the model file. overrides: run-manifest overrides (:func:`load_run_manifest`).
     cache: cache root (default ``$FREEZE_CACHE`` or ``<project>/cache``).
     """
+    from pipeline.bop import wrap
     from pipeline.plan import build_encoders
 
     steps = Steps(progress, console)
     if (mask is None) == (bbox is None):
         raise EstimateError("give exactly one localisation prior: --mask MASK.png or --bbox x,y,w,h")
+    bop_name = bop_name if bop_name is not None else wrap.default_name(model)
+    try:
+        wrap.check_name(bop_name)
+    except ValueError as e:
+        raise EstimateError(f"--bop-name: {e}") from None
     with steps("inputs"):
         run = load_run_manifest(overrides)
         cam = load_camera(camera)
@@ -731,6 +742,20 @@ def estimate(
         with steps("write outputs"):
             files = _write_outputs(Path(out_dir), assets, run, geo, vis, rgb_im, depth_im, cam.K, box, R, t, record,
                                    rec["_artifacts"], steps)
+        with steps("write BOP dataset"):
+            # box prior: the prior's mask is the pixels of the points kept, so the pipeline lifts those same points
+            kept = None
+            if mask_im is None:
+                kept = np.zeros((H, W), bool)
+                pix = rec["_artifacts"]["all_pixels"]
+                kept[pix[:, 1], pix[:, 0]] = True
+            try:
+                files["bop"] = wrap.wrap_frame(Path(out_dir) / "bop", bop_name, rgb=rgb_im, depth_mm=depth_im,
+                                               K=cam.K, model_path=Path(model), model_scale=model_scale, mask=mask_im,
+                                               bbox=box, kept_mask=kept, overwrite=True)
+            except ValueError as e:
+                raise EstimateError(f"writing the BOP dataset {Path(out_dir) / 'bop' / bop_name}: {e}") from None
+            files["bop_prior"] = wrap.detections_path(Path(out_dir) / "bop", bop_name)
     record["timings_s"] = {k: round(v, 3) for k, v in steps.timings.items()}
     record = _jsonable(record)
     if out_dir is not None:

@@ -25,11 +25,14 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         mask: Optional[Path] = typer.Option(None, "--mask", help="object mask image (non-zero = object), or a "
                                                                  "detections JSON (CNOS/SAM-6D; best score used)"),
         bbox: Optional[str] = typer.Option(None, "--bbox", help="object box x,y,w,h in pixels (instead of --mask)"),
-        depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="mm per depth unit [default: the "
-                                                                                "camera file's depth_scale, else 1]"),
+        depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="mm per depth unit (default: the "
+                                                                                "camera file's depth_scale, else 1)"),
         model_scale: float = typer.Option(1.0, "--model-scale", help="multiply the model's coordinates (1000 for "
                                                                      "a model in metres)"),
         out: Path = typer.Option(Path("estimate_out"), "--out", help="output folder"),
+        bop_name: Optional[str] = typer.Option(None, "--bop-name", help="name of the one-image BOP dataset written to "
+                                               "OUT/bop/NAME, lowercase letters and digits (default: the model "
+                                               "file's name reduced to them: obj_000005.ply -> obj000005)"),
         config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value, e.g. "
                                                    "visual=dinov2-vits14 or register.max_iterations=20000"),
         progress: bool = typer.Option(True, help="show each step with its time"),
@@ -41,6 +44,13 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         OUT/points.png (the depth points used) and the artifacts OUT/model_features,
         scene_features, register, refine (the stages' files). The model side is cached
         under <cache>/_estimate/ and reused for the same model and parameters.
+
+        The frame is also written as a one-image BOP dataset, OUT/bop/NAME (camera,
+        model in mm, models_info, targets, rgb, depth), with its prior
+        OUT/bop/detections/estimate_NAME-test.json (the --mask, or the pixels of the
+        depth points kept inside the --bbox): read it with pipeline.bop.BopDataset, or
+        run the pipeline on it with bop_root=OUT/bop. It has no ground truth, so it is
+        not scored. A dataset of the same NAME already in OUT/bop is replaced.
         """
         from rich.console import Console
 
@@ -53,8 +63,8 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         console.print(f"[bold]freeze estimate[/] {model.name} in {rgb.name} -> {out}")
         try:
             res = estimate(model, rgb, depth, camera, mask=mask, bbox=bbox, depth_scale=depth_scale,
-                           model_scale=model_scale, out_dir=out, overrides=parse_overrides(config), progress=progress,
-                           console=console)
+                           model_scale=model_scale, out_dir=out, bop_name=bop_name, overrides=parse_overrides(config),
+                           progress=progress, console=console)
         except (EstimateError, ManifestError, BopFormatError) as e:
             console.print(f"[red]error:[/] {e}")
             raise typer.Exit(1)
@@ -67,3 +77,9 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
         console.print(f"model cache: {res.model.cache_dir} ({'reused' if res.model_cache_reused else 'built'})")
         for name, path in res.files.items():
             console.print(f"  {name:<15} {path}")
+        ds = res.files["bop"]
+        console.print(f"BOP dataset (1 image, no ground truth): {ds}; load it with pipeline.bop.BopDataset(\"{ds}\"), "
+                      f"or run bop_all with bop_root={ds.parent} datasets={ds.name} after adding "
+                      f"manifests/datasets/{ds.name}.yaml (name: {ds.name}, kind: bop, "
+                      f"prior: {res.files['bop_prior'].relative_to(ds.parent)})", soft_wrap=True, markup=False,
+                      highlight=False)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -123,9 +124,18 @@ class DatasetPlan:
         return self.stages[stage]
 
     @property
-    def prior_path(self) -> Path:
+    def prior_paths(self) -> list[Path]:
+        """The localisation prior files (several are merged by segment_prior)."""
         base = self.root if self.dataset.kind == "synthetic" else Path(self.run.bop_root or ".")
-        return resolve_prior(base, self.dataset.prior)
+        return [resolve_prior(base, pattern) for pattern in self.dataset.prior_patterns(self.run.priors)]
+
+    @property
+    def prior_path(self) -> Path:
+        """The prior file of a run with one prior (see ``prior_paths``)."""
+        paths = self.prior_paths
+        if len(paths) != 1:
+            raise ValueError(f"dataset '{self.name}' merges {len(paths)} prior files; use prior_paths")
+        return paths[0]
 
     @property
     def results_csv_name(self) -> str:
@@ -133,9 +143,7 @@ class DatasetPlan:
 
     def bop(self):
         """The dataset reader (:class:`pipeline.bop.BopDataset`)."""
-        from pipeline.bop import BopDataset
-
-        return BopDataset(self.root, split=self.dataset.split, split_type=self.dataset.split_type)
+        return open_bop(self.root, self.dataset)
 
     def model_info(self, bop, obj_id: int):
         """``bop.models_info()[obj_id]``, failing with the file and the known ids."""
@@ -175,10 +183,43 @@ def _synthetic_layout(ds: cfg.DatasetManifest) -> tuple[list[int], list[int]]:
     return preset_layout(ds.preset, ds.seed)
 
 
-def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str]:
+def open_bop(root: Path, ds: cfg.DatasetManifest):
+    """The reader (:class:`pipeline.bop.BopDataset`) of dataset ``ds`` at ``root``, with
+    its manifest's split, split type, model folder and camera file."""
     from pipeline.bop import BopDataset
 
-    bop = BopDataset(root, split=ds.split, split_type=ds.split_type)
+    return BopDataset(root, split=ds.split, split_type=ds.split_type, models_dir=ds.models, camera_file=ds.camera_file)
+
+
+def prior_label(paths: list[Path]) -> str:
+    """Readable name of the prior files: their detector names (the part of each file
+    name before the first '_'), joined by '+'."""
+    names = [re.sub(r"[^A-Za-z0-9.-]", "", p.stem.split("_")[0]) or "prior" for p in paths]
+    return "+".join(names)
+
+
+# Parameters added after caches existed enter a key only when they change the output,
+# so that runs made before them keep their artifacts.
+
+def _grey(ds: cfg.DatasetManifest) -> dict[str, str]:
+    """``{"image_mode": "gray"}`` for grey datasets, nothing for colour ones."""
+    return {"image_mode": "gray"} if ds.image_mode == "gray" else {}
+
+
+def _prior_params(patterns: list[str], p: cfg.SegmentPriorParams) -> dict[str, Any]:
+    """segment_prior's keyed parameters: the prior pattern(s), the selection, and the
+    merge threshold and category-id mode only where they act."""
+    out = {"prior": patterns[0] if len(patterns) == 1 else patterns,
+           **p.model_dump(exclude={"merge_iou", "category_ids"})}
+    if len(patterns) > 1:
+        out["merge_iou"] = p.merge_iou
+    if p.category_ids != "obj_id":
+        out["category_ids"] = p.category_ids
+    return out
+
+
+def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str]:
+    bop = open_bop(root, ds)
     targets = bop.targets(root / ds.targets_file)
     obj_ids = sorted({t.obj_id for t in targets})
     scene_ids = sorted({t.scene_id for t in targets})
@@ -212,6 +253,19 @@ class RunPlan:
             return False, f"{name}: skipped, {root / ds.targets_file} not found"
         return True, ""
 
+    def notes(self, name: str) -> list[str]:
+        """Things a user should know before running dataset ``name`` with this run."""
+        ds = cfg.load_dataset_manifest(name)
+        out = []
+        vis = self.encoders["visual"]
+        if ds.image_mode == "gray" and vis["encoder"] == "colortex" and not vis["params"].get("intensity_weight"):
+            out.append(f"{name}: grey images, on which the colour channels of visual encoder '{vis['manifest']}' are "
+                       "all zero (geometry alone matches); --config visual=colortex-intensity adds intensity texture")
+        if not ds.public_gt:
+            out.append(f"{name}: the test ground truth is private, so no AR is computed here: submit "
+                       f"results/{self.run.method}_{name}-{ds.split}.csv to the BOP evaluation server")
+        return out
+
     def __getitem__(self, name: str) -> DatasetPlan:
         if name not in self._plans:
             self._plans[name] = self._plan_dataset(name)
@@ -242,10 +296,11 @@ class RunPlan:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
             obj_ids, scene_ids, dataset_key = _bop_layout(root, ds)
-            prior_file = resolve_prior(Path(run.bop_root), ds.prior)
-            if not prior_file.exists():
-                raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
-            prior_key = file_sha1(prior_file)
+            prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]
+            for prior_file in prior_files:
+                if not prior_file.exists():
+                    raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
+            prior_key = "+".join(file_sha1(f) for f in prior_files)
         ds_params = {"dataset": name, "split": ds.split, "split_type": ds.split_type}
         enc = self.encoders
         geo, vis = enc["geometric"], enc["visual"]
@@ -256,7 +311,7 @@ class RunPlan:
         rt = sp.render_templates
         stages["render_templates"] = self._stage(
             name, "render_templates", f"r{rt.n_views}-s{rt.image_size}",
-            {**ds_params, **rt.model_dump()}, {"dataset": dataset_key})
+            {**ds_params, **rt.model_dump(), **_grey(ds)}, {"dataset": dataset_key})
         sym = sp.symmetries
         stages["symmetries"] = self._stage(
             name, "symmetries", f"so3-n{sym.n_points}",
@@ -266,8 +321,9 @@ class RunPlan:
             {**sp.model_features.model_dump(), "encoders": enc_params},
             {"render_templates": stages["render_templates"].key})
         stages["segment_prior"] = self._stage(
-            name, "segment_prior", f"{Path(ds.prior).stem.split('_')[0]}-top{sp.segment_prior.top_k}",
-            {**ds_params, "prior": ds.prior, "targets_file": ds.targets_file, **sp.segment_prior.model_dump()},
+            name, "segment_prior", f"{prior_label([Path(p) for p in ds.prior_patterns(run.priors)])}-top{sp.segment_prior.top_k}",
+            {**ds_params, **_prior_params(ds.prior_patterns(run.priors), sp.segment_prior),
+             "targets_file": ds.targets_file},
             {"dataset": dataset_key, "prior": prior_key})
         stages["scene_features"] = self._stage(
             name, "scene_features", enc_name,
@@ -279,7 +335,7 @@ class RunPlan:
         rf = sp.refine
         refine_name = "+".join(["icp" if rf.icp else "coarse"] + (["sar"] if rf.sar else [])) + f"-by{rf.select_by}"
         stages["refine"] = self._stage(
-            name, "refine", refine_name, {"method": run.method, **rf.model_dump()},
+            name, "refine", refine_name, {"method": run.method, **rf.model_dump(), **_grey(ds)},
             {"register": stages["register"].key, "symmetries": stages["symmetries"].key})
         stages["score"] = self._stage(
             name, "score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump()},

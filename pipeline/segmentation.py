@@ -29,8 +29,10 @@ def select_candidates(
     object): ``top_k`` candidates per instance to find.
 
     detections: :class:`pipeline.bop.detections.Detection` items; targets: items with
-    scene_id, im_id, obj_id and inst_count (1 if absent). Returns the candidate table (see stage segment_prior) and a
-    report of what was dropped and why, plus the targets left without any candidate.
+    scene_id, im_id, obj_id and inst_count (1 if absent). Returns the candidate table (see stage segment_prior;
+    the last column, ``prior_source``, is the detection's ``source``: the prior file/detector
+    it came from, "" when not recorded) and a report of what was dropped and why, plus the
+    targets left without any candidate.
     """
     target_keys = {(t.scene_id, t.im_id, t.obj_id) for t in targets}
     inst_count = {(t.scene_id, t.im_id, t.obj_id): max(1, int(getattr(t, "inst_count", 1))) for t in targets}
@@ -69,11 +71,12 @@ def select_candidates(
                 "area": area, "height": h, "width": w,
                 "rle_counts": [int(c) for c in rle["counts"]],
                 "det_index": idx, "prior_time": image_time.get(key[:2], -1.0),
+                "prior_source": str(getattr(det, "source", "") or ""),
             })
             kept += 1
     table = pd.DataFrame(rows, columns=[
         "scene_id", "im_id", "obj_id", "score", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
-        "area", "height", "width", "rle_counts", "det_index", "prior_time"])
+        "area", "height", "width", "rle_counts", "det_index", "prior_time", "prior_source"])
     table.insert(0, "cand_id", np.arange(len(table), dtype=np.int64))
     covered = {tuple(k) for k in table[["scene_id", "im_id", "obj_id"]].itertuples(index=False)}
     missing = sorted(target_keys - covered)

@@ -167,7 +167,7 @@ def _symmetry_aware_refinement(plan: DatasetPlan, bop, item: str, poses: pd.Data
                 renderer, obj_id, vis_enc, images[im_id], cams[im_id].K, (b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h),
                 np.asarray(poses.at[i, "R"], float).reshape(3, 3), np.asarray(poses.at[i, "t"], float),
                 transforms[obj_id], margin=margin, min_cover=p.sar_min_cover, min_gain=p.sar_min_gain,
-                centre=p.sar_centre, scene_mask=mask)
+                centre=p.sar_centre, scene_mask=mask, image_mode=plan.dataset.image_mode)
             k = int(res.index)
             poses.at[i, "R"] = np.asarray(res.Rs[k], float).reshape(9).tolist()
             poses.at[i, "t"] = np.asarray(res.ts[k], float).reshape(3).tolist()

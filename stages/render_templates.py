@@ -1,6 +1,7 @@
 """Stage render_templates: R object-centred views of one object -> ``templates.zarr``.
 
-Arrays (chunked one view per chunk): rgb (R, S, S, 3) uint8, depth (R, S, S) float32 mm,
+Arrays (chunked one view per chunk): rgb (R, S, S, 3) uint8 (grey replicated to 3
+channels for grey datasets), depth (R, S, S) float32 mm,
 mask (R, S, S) bool, K (R, 3, 3), R (R, 3, 3), t (R, 3) mm (model-to-camera).
 """
 
@@ -14,7 +15,7 @@ CODE_VERSION = 1
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.render import Renderer
-    from pipeline.render.templates import render_templates, template_views
+    from pipeline.render.templates import match_image_mode, render_templates, template_views
 
     obj_id = item_id(item, "obj", "render_templates")
     sp = plan["render_templates"]
@@ -27,7 +28,9 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         with Renderer(p.image_size, p.image_size, znear=1.0, zfar=10 * p.distance_factor * info.diameter) as r:
             r.add_mesh(obj_id, mesh)
             arrays = render_templates(r, obj_id, views)
+        # grey datasets (ITODD) get grey templates, so that both sides of the matching look alike
+        arrays["rgb"] = match_image_mode(arrays["rgb"], plan.dataset.image_mode)
         save_arrays(w.dir / "templates.zarr", arrays, attrs={"key": sp.key, "obj_id": obj_id, "diameter": info.diameter})
         w.summary.update({"obj_id": obj_id, "n_views": p.n_views, "image_size": p.image_size,
-                          "diameter_mm": info.diameter,
+                          "diameter_mm": info.diameter, "image_mode": plan.dataset.image_mode,
                           "mean_mask_fraction": float(arrays["mask"].mean())})

@@ -65,7 +65,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                 i = row_pos[r.cand_id]
                 mask = rle_decode({"counts": list(r.rle_counts), "size": [int(r.height), int(r.width)]})
                 if mask.shape != depth.shape:
-                    raise ValueError(f"{plan.prior_path}: detection {r.det_index} (scene {scene_id}, image {im_id}): "
+                    src = getattr(r, "prior_source", "") or ", ".join(str(x) for x in plan.prior_paths)
+                    raise ValueError(f"{src}: detection {r.det_index} (scene {scene_id}, image {im_id}): "
                                      f"mask size {mask.shape} differs from the depth image {depth.shape}")
                 diameter = infos[int(r.obj_id)].diameter
                 pts, pix = lift_depth(depth, cam.K, mask)

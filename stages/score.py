@@ -4,14 +4,49 @@
 MSPD (px) and VSD per tau; ``scores.json`` holds AR, AR_VSD, AR_MSSD, AR_MSPD and the
 counts, computed by :func:`pipeline.metrics.score_results_file` (also behind
 ``freeze score``).
+
+Datasets whose test ground truth is private (ITODD, HB: no ``scene_gt.json`` in the
+distributed test split) cannot be scored here: when a target scene has no
+``scene_gt.json``, ``scores.json`` says so, with AR left empty, and the results CSV is
+the file to submit to the BOP evaluation server.
 """
 
 from __future__ import annotations
+
+import json
 
 from pipeline.plan import DatasetPlan
 from pipeline.store import publish
 
 CODE_VERSION = 2
+
+
+def missing_ground_truth(plan: DatasetPlan) -> list[str]:
+    """The ``scene_gt.json`` files of the target scenes that do not exist."""
+    bop = plan.bop()
+    return [str(bop.scene_dir(s) / "scene_gt.json") for s in plan.scene_ids
+            if not (bop.scene_dir(s) / "scene_gt.json").is_file()]
+
+
+def unscored_summary(plan: DatasetPlan, csv, missing: list[str]) -> dict:
+    """What ``scores.json`` says of a dataset without public ground truth: counts, the
+    BOP time per image, and where the CSV for the BOP server is."""
+    from pipeline.bop import read_results_csv
+    from pipeline.metrics.evaluate import mean_time_per_image
+
+    df = read_results_csv(csv)
+    targets = plan.bop().targets(plan.root / plan.dataset.targets_file)
+    why = ("the test ground truth of this dataset is not public" if not plan.dataset.public_gt
+           else f"{len(missing)} target scene(s) have no scene_gt.json (first: {missing[0]})")
+    return {
+        "status": "no_ground_truth",
+        "AR": None, "AR_VSD": None, "AR_MSSD": None, "AR_MSPD": None,
+        "n_targets": int(sum(t.inst_count for t in targets)),
+        "n_estimates": int(len(df)),
+        "mean_time_per_image": mean_time_per_image(df),
+        "results_file": str(csv),
+        "notes": [f"not scored: {why}; submit {csv} to the BOP evaluation server (bop.felk.cvut.cz)"],
+    }
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
@@ -22,8 +57,14 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
     sp = plan["score"]
     p = plan.run.stages.score
     csv = plan["refine"].item_dir("all") / plan.results_csv_name
+    missing = missing_ground_truth(plan)
     with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
-        scores = score_results_file(csv, plan.root, split=plan.dataset.split,
+        if missing:
+            summary = unscored_summary(plan, csv, missing)
+            (w.dir / "scores.json").write_text(json.dumps({"summary": summary}, indent=1) + "\n")
+            w.summary.update(summary)
+            return
+        scores = score_results_file(csv, plan.root, split=plan.dataset.split, split_type=plan.dataset.split_type,
                                     targets_file=plan.root / plan.dataset.targets_file,
                                     out_dir=w.dir, n_workers=p.n_workers, vsd_delta=plan.dataset.vsd_delta,
                                     progress=progress)

@@ -19,7 +19,18 @@ def test_core_manifests_carry_what_differs():
     for name, (split_type, vsd_delta) in CORE.items():
         ds = cfg.load_dataset_manifest(name)
         assert (ds.kind, ds.folder, ds.split, ds.split_type, ds.vsd_delta) == ("bop", name, "test", split_type, vsd_delta)
-        assert ds.prior == f"detections/cnos-fastsam_{name}-test*.json"
+        assert ds.prior_patterns() == [f"detections/cnos-fastsam_{name}-test*.json"]
+        assert ds.prior_patterns(["sam6d-fastsam"]) == [f"detections/sam6d-fastsam_{name}-test*.json"]
+        assert ds.prior_patterns(["cnos-fastsam", "mine/{dataset}.json"]) == [
+            f"detections/cnos-fastsam_{name}-test*.json", f"mine/{name}.json"]
+    # what differs between them, as BOP distributes them
+    man = {name: cfg.load_dataset_manifest(name) for name in CORE}
+    assert man["lmo"].obj_ids == [1, 5, 6, 8, 9, 10, 11, 12] and man["tless"].models == "models_cad"
+    assert (man["itodd"].image_dir, man["itodd"].image_ext, man["itodd"].depth_ext, man["itodd"].image_size) == (
+        "gray", ".tif", ".tif", (1280, 960))
+    assert man["itodd"].image_mode == "gray" and man["lmo"].image_mode == "rgb"
+    assert man["tless"].image_size == (720, 540) and man["ycbv"].camera_file == "camera_uw.json"
+    assert [n for n in CORE if not man[n].public_gt] == ["itodd", "hb"]
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +89,10 @@ def test_datasets_check_summarises_and_names_problems(bop_root, tmp_path):
     assert lmo["ok"] and lmo["errors"] == []
     assert lmo["summary"] | {"detections": None} == {
         "objects": 3, "scenes": 1, "images": 2, "targets": 5, "instances": 7,
-        "instances_per_target": {"1": 3, "2": 2}, "images_with_problems": 0, "detections": None}
+        "instances_per_target": {"1": 3, "2": 2}, "images_with_problems": 0, "detections": None,
+        "image_size": [640, 480], "ground_truth": True}
+    # the synthetic objects 2, 5, 6 stand in for LM-O's: object 2 is not one of LM-O's
+    assert any("target objects [2] are not among BOP's lmo objects" in w for w in lmo["warnings"])
 
     # A broken copy: metre models, a missing depth image, no prior.
     broken = tmp_path / "bop"

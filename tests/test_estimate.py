@@ -99,7 +99,7 @@ def _run(case: dict, **kw) -> est.EstimateResult:
 
 def test_recovers_a_known_pose_from_a_mask(case, tmp_path):
     builds = est.MODEL_BUILDS
-    res = _run(case, mask=case["mask"], out_dir=tmp_path / "out")
+    res = _run(case, mask=case["mask"], out_dir=tmp_path / "out", bop_name="truck")
     assert _rot_err_deg(res.R, case["R"]) < MAX_ROT_DEG
     assert np.linalg.norm(res.t - case["t"]) < MAX_TRANS_MM
     assert est.MODEL_BUILDS == builds + 1 and not res.model_cache_reused
@@ -109,6 +109,13 @@ def test_recovers_a_known_pose_from_a_mask(case, tmp_path):
     assert rec["n_inliers"] > 0 and 0 < rec["score"] <= 1 and rec["fitness"] > 0.7
     assert rec["sar_reason"] == "no symmetry" and rec["sar_variant"] == -1  # the truck has none
     assert rec["model"]["diameter_mm"] == pytest.approx(case["diameter"], rel=1e-3)
+    # the frame as a one-image BOP dataset: its prior is the mask given
+    from pipeline.bop import BopDataset, load_detections
+
+    assert res.files["bop"] == tmp_path / "out" / "bop" / "truck"
+    (det,) = load_detections(tmp_path / "out" / "bop" / "detections" / "estimate_truck-test.json")
+    assert np.array_equal(det.mask(), case["mask_array"]) and det.bbox == tuple(rec["inputs"]["bbox"])
+    assert BopDataset(res.files["bop"]).models_info()[1].diameter == pytest.approx(case["diameter"], rel=1e-3)
 
 
 def test_recovers_it_from_a_box_alone_and_reuses_the_model_cache(case, tmp_path):
@@ -175,6 +182,22 @@ def test_cli_writes_pose_overlay_and_stage_artifacts(case, tmp_path, monkeypatch
     assert np.allclose(np.reshape(poses.R.iloc[0], (3, 3)), rec["R"])
     for stage in ("model_features", "scene_features", "register", "refine"):
         assert read_manifest(out / stage)["stage"] == stage
+    # the frame as a one-image BOP dataset (default name: the model file's, "model"), read by the BOP reader
+    from pipeline.bop import BopDataset, Target, load_detections
+
+    ds = BopDataset(out / "bop" / "model")
+    assert ds.targets() == [Target(1, 0, 1, 1)]
+    assert np.array_equal(ds.scene_camera(1)[0].K, case["K"])
+    assert np.array_equal(ds.load_rgb(1, 0), est.load_rgb(case["rgb"]))
+    assert np.abs(ds.load_depth(1, 0) - est.load_depth(case["depth"], 0.1)).max() < 0.051
+    assert ds.model_path(1).read_bytes() == case["model"].read_bytes()
+    (det,) = load_detections(out / "bop" / "detections" / "estimate_model-test.json")
+    assert det.bbox == case["bbox"]
+    # the prior's mask: the pixels of the points the box rule kept, the object's and not the table's
+    m, obj = det.mask(), case["mask_array"]
+    assert (m & obj).sum() > 0.9 * obj.sum() and (m & ~obj).sum() < 0.01 * obj.sum()
+    assert m.sum() == rec["n_valid_points"]
+    assert "BopDataset(" in result.output and f"bop_root={out / 'bop'}" in result.output.replace("\n", "")
 
 
 def test_model_cache_key_follows_the_model_side_only(case):
@@ -248,6 +271,8 @@ def test_clear_errors_for_missing_files_and_bad_inputs(case, tmp_path, monkeypat
         est.estimate(case["model"], case["rgb"], case["depth"], case["camera"])
     with pytest.raises(EstimateError, match="--bbox"):
         est.estimate(case["model"], case["rgb"], case["depth"], case["camera"], bbox="1,2,3")
+    with pytest.raises(EstimateError, match="--bop-name.*lowercase letters and digits"):
+        est.estimate(case["model"], case["rgb"], case["depth"], case["camera"], bbox=case["bbox"], bop_name="My_Can")
     # a model in metres is refused, with the option that fixes it
     from pipeline.bop.ply import write_ply
 
@@ -284,3 +309,10 @@ def test_real_linemod_frame_gives_a_pose_inside_the_box(tmp_path):
     assert 800 < res.t[2] < 1200  # the can stands about 1 m from the camera
     assert res.record["model"]["diameter_mm"] == pytest.approx(201.4, abs=0.5)
     assert (tmp_path / "out" / "overlay.png").exists()
+    # wrapped by `freeze estimate`, the frame reads back as a BOP dataset
+    from pipeline.bop import BopDataset, load_detections
+
+    ds = BopDataset(tmp_path / "out" / "bop" / "obj000005")
+    assert ds.load_rgb(1, 0).shape == (480, 640, 3) and np.array_equal(ds.scene_camera(1)[0].K, K)
+    (det,) = load_detections(tmp_path / "out" / "bop" / "detections" / "estimate_obj000005-test.json")
+    assert det.bbox == bbox and det.mask().sum() > 1000

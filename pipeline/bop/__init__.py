@@ -19,9 +19,13 @@ from .dataset import (
     write_targets,
 )
 from .detections import (
+    CATEGORY_ID_MODES,
     Detection,
+    category_id_problem,
     detection_from_mask,
     load_detections,
+    map_category_ids,
+    merge_detections,
     rle_counts_from_string,
     rle_counts_to_string,
     rle_decode,
@@ -35,6 +39,7 @@ from .ply import PlyData, load_mesh, read_ply, write_ply
 from .results import read_estimates_json, read_results_csv, write_results_csv
 
 __all__ = [
+    "CATEGORY_ID_MODES",
     "DEFAULT_TARGETS",
     "BopDataset",
     "BopFormatError",
@@ -45,10 +50,13 @@ __all__ = [
     "ModelInfo",
     "PlyData",
     "Target",
+    "category_id_problem",
     "detection_from_mask",
     "load_detections",
     "load_json",
     "load_mesh",
+    "map_category_ids",
+    "merge_detections",
     "read_estimates_json",
     "read_ply",
     "read_results_csv",

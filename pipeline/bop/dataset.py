@@ -197,19 +197,22 @@ class BopDataset:
     "val", "train_pbr"... split_type: e.g. "primesense" for T-LESS, which selects the
     folder ``<split>_<split_type>`` and ``camera_<split_type>.json``. models_dir:
     the model folder used by ``model_path(eval=False)`` ("models", or T-LESS's
-    "models_cad"/"models_reconst").
+    "models_cad"/"models_reconst"). camera_file: the camera file when it is not
+    ``camera[_<split_type>].json`` (YCB-V ships ``camera_uw.json`` and ``camera_cmu.json``).
 
     Datasets that ship only ``models_eval`` (e.g. the HOPE validation sample) fall
     back to it, with a warning, since those meshes carry no colour.
     """
 
-    def __init__(self, root: Path | str, split: str = "test", split_type: str | None = None, models_dir: str = "models"):
+    def __init__(self, root: Path | str, split: str = "test", split_type: str | None = None, models_dir: str = "models",
+                 camera_file: str | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
             raise BopFormatError(f"{self.root}: dataset root is not a directory")
         self.split = split
         self.split_type = split_type
         self.models_dir = models_dir
+        self.camera_file = camera_file
         self.split_dir = self.root / (f"{split}_{split_type}" if split_type else split)
         self._json_cache: dict[Path, Any] = {}
         self._models_info: dict[int, ModelInfo] | None = None
@@ -234,6 +237,8 @@ class BopDataset:
     # -- camera and models
 
     def camera_path(self) -> Path:
+        if self.camera_file:
+            return self.root / self.camera_file
         if self.split_type:
             typed = self.root / f"camera_{self.split_type}.json"
             if typed.is_file():

@@ -139,7 +139,7 @@ def _check_results(results: pd.DataFrame) -> pd.DataFrame:
     return df
 
 
-def _mean_time_per_image(df: pd.DataFrame) -> float:
+def mean_time_per_image(df: pd.DataFrame) -> float:
     """Mean of the per-image times, -1 if any is negative; warns on disagreeing lines.
 
     The toolkit raises when the lines of an image differ by more than 1 ms; here it is a
@@ -460,7 +460,7 @@ def evaluate(
     if unknown:
         raise ValueError(f"{dataset.root}: target object(s) {unknown} have no entry in models_info.json")
 
-    mean_time = _mean_time_per_image(df)
+    mean_time = mean_time_per_image(df)
     ests, n_ignored = _select_estimates(df, inst_counts)
     n_in_targets = len(df) - n_ignored
     if n_ignored:

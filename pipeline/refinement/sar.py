@@ -35,7 +35,7 @@ import numpy as np
 from pipeline.geometry.crops import CropBox, crop_and_resize, square_crop_box
 from pipeline.encoders.registry import VisualEncoder
 from pipeline.render.renderer import Lighting, Renderer
-from pipeline.render.templates import TEMPLATE_LIGHTING
+from pipeline.render.templates import TEMPLATE_LIGHTING, match_image_mode
 
 __all__ = [
     "SarResult",
@@ -306,6 +306,7 @@ def symmetry_aware_refinement(
     lighting: Lighting | None = None,
     batch_size: int = 16,
     scene_mask: np.ndarray | None = None,
+    image_mode: str = "rgb",
 ) -> SarResult:
     """Choose among the symmetric variants of a refined pose the one that looks most
     like the scene.
@@ -330,6 +331,9 @@ def symmetry_aware_refinement(
     scene_mask: (H, W) bool, the candidate's mask (the visible part of the object).
     When given, only render pixels inside it count, so that an occluder in front of the
     object, which the render cannot know about, does not enter the comparison.
+
+    image_mode: "gray" for grey datasets (ITODD): the renders are turned grey like the
+    scene image (:func:`pipeline.render.templates.match_image_mode`).
     """
     rgb_image = np.asarray(rgb_image)
     if rgb_image.ndim != 3 or rgb_image.shape[2] != 3 or rgb_image.dtype != np.uint8:
@@ -354,6 +358,7 @@ def symmetry_aware_refinement(
     for v in range(V):
         renders[v], m = render_in_crop(renderer, key, Rs[v], ts[v], K, box, size, lighting)
         masks[v] = m & inside
+    renders = match_image_mode(renders, image_mode)
     scores = sar_similarity(encoder, scene_crop, renders, masks, min_cover, centre, batch_size)
     best = int(np.argmax(scores))
     index = best if scores[best] > scores[0] + min_gain else 0

@@ -13,6 +13,25 @@ import numpy as np
 
 from pipeline.render.renderer import Light, Lighting, Renderer
 
+IMAGE_MODES = ("rgb", "gray")
+# ITU-R BT.601 luma, the weights OpenCV's RGB2GRAY uses: a grey camera sees roughly this.
+_LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def match_image_mode(rgb: np.ndarray, mode: str) -> np.ndarray:
+    """Renders (..., 3) uint8 RGB made to look like the dataset's images: unchanged for
+    ``"rgb"``; for ``"gray"`` (ITODD) the luma replicated to 3 channels, as the reader
+    replicates a grey image, so templates and scene crops meet the visual encoder alike."""
+    if mode not in IMAGE_MODES:
+        raise ValueError(f"image mode must be one of {IMAGE_MODES}, got {mode!r}")
+    rgb = np.asarray(rgb)
+    if mode == "rgb":
+        return rgb
+    if rgb.shape[-1:] != (3,) or rgb.dtype != np.uint8:
+        raise ValueError(f"match_image_mode: expected (..., 3) uint8, got {rgb.shape} {rgb.dtype}")
+    luma = np.clip(np.rint(rgb.astype(np.float32) @ _LUMA.astype(np.float32)), 0, 255).astype(np.uint8)
+    return np.repeat(luma[..., None], 3, axis=-1)
+
 
 def fibonacci_sphere(n: int) -> np.ndarray:
     """(n, 3) float64 unit vectors spread evenly over the sphere (golden-angle spiral)."""

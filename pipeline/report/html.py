@@ -96,6 +96,12 @@ def stage_timings(plan) -> list[StageTiming]:
     return rows
 
 
+def empty_estimate_table() -> pd.DataFrame:
+    """An :func:`estimate_table` with no rows."""
+    return pd.DataFrame(columns=["scene_id", "im_id", "obj_id", "est_id", "score", "R", "t", "gt_id", "mssd", "mspd",
+                                 "visib", "diameter", "mssd_frac", "correct"])
+
+
 def estimate_table(plan) -> pd.DataFrame:
     """Every evaluated estimate with its pose and the ground-truth instance it is judged by.
 
@@ -120,8 +126,7 @@ def estimate_table(plan) -> pd.DataFrame:
     results["est_id"] = results.groupby(keys, sort=False).cumcount()
     errors = read_table(err_path)
     if errors.empty:
-        return pd.DataFrame(columns=keys + ["est_id", "score", "R", "t", "gt_id", "mssd", "mspd", "visib",
-                                            "diameter", "mssd_frac", "correct"])
+        return empty_estimate_table()
     errors = errors.copy()
     valid = errors["gt_valid"].astype(bool) if "gt_valid" in errors else pd.Series(True, index=errors.index)
     errors["_invalid"] = ~valid & errors["mssd"].notna()
@@ -407,7 +412,9 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
     plan = rp[dataset]
     scores = read_scores(plan)
     summary = scores["summary"]
-    table = estimate_table(plan)
+    # private test ground truth (ITODD, HB): nothing to judge the estimates by
+    no_gt = summary.get("status") == "no_ground_truth"
+    table = empty_estimate_table() if no_gt else estimate_table(plan)
     chosen = choose_samples(table, samples)
     panels = draw_samples(plan, chosen)
     sar = sar_figures(plan)
@@ -485,6 +492,9 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
 
     # ---- 4. samples
     add("<h2>4. Estimates drawn over their images</h2>")
+    if no_gt:
+        add('<p class="note">This dataset\'s test ground truth is not public, so no estimate can be judged here; '
+            'the results CSV named above is the file for the BOP evaluation server.</p>')
     n_correct = int(table["correct"].sum()) if len(table) else 0
     add(f'<p class="note">{len(panels)} of {len(table)} evaluated estimates ({n_correct} correct), chosen '
         f'deterministically: objects take turns, alternating correct and wrong ones where both exist. Left: the '
