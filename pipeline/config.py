@@ -12,12 +12,13 @@ the field. Snakemake's ``--config`` may override a few top-level run keys with p
 strings (``datasets=a,b``, ``geometric_encoder=...`` or its short form ``geometric=...``,
 ``visual_encoder=...`` or ``visual=...``, ``weights_dir=...``, ``bop_root=...``,
 ``method=...``, ``prior=sam6d-fastsam[,cnos-fastsam]`` or its long form ``priors=...``,
-``run=manifests/runs/other.yaml``). An encoder may be ``none``
+``run=manifests/runs/other.yaml``); ``bop_root`` defaults to ``$BOP_ROOT``. An encoder may be ``none``
 (geometry-only or vision-only runs), not both.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from pathlib import Path
@@ -342,6 +343,8 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
     ``config`` is Snakemake's config dict (or CLI overrides): it may name another
     manifest with ``run`` and override the flat keys in ``_OVERRIDES``; any other key
     of the run manifest is taken from ``config`` as-is (so a ``configfile`` works too).
+    ``bop_root`` falls back to the environment variable ``BOP_ROOT`` and is made
+    absolute (stage jobs may run elsewhere).
     """
     config = dict(config or {})
     run_path = Path(config.pop("run", None) or path or DEFAULT_RUN)
@@ -363,4 +366,8 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
             data[key] = value
         elif key in data and key not in _OVERRIDES:
             data[key] = value
+    if not data.get("bop_root") and os.environ.get("BOP_ROOT"):
+        data["bop_root"] = os.environ["BOP_ROOT"]  # the one setting, from the environment
+    if data.get("bop_root"):
+        data["bop_root"] = str(Path(data["bop_root"]).expanduser().resolve())
     return _validate(RunManifest, data, str(run_path))

@@ -247,7 +247,7 @@ class RunPlan:
         if ds.kind == "synthetic":
             return True, ""
         if not self.run.bop_root:
-            return False, f"{name}: skipped, no bop_root set (--config bop_root=/path/to/bop)"
+            return False, f"{name}: skipped, no bop_root set (--config bop_root=/path/to/bop, or $BOP_ROOT)"
         root = Path(self.run.bop_root) / (ds.folder or ds.name)
         if not (root / ds.targets_file).exists():
             return False, f"{name}: skipped, {root / ds.targets_file} not found"
@@ -284,6 +284,7 @@ class RunPlan:
         run = self.run
         sp = run.stages
         stages: dict[str, StagePlan] = {}
+        score_extra: dict[str, Any] = {}
         if ds.kind == "synthetic":
             synth = self._stage(name, "synth", f"{ds.preset}-seed{ds.seed}", {"preset": ds.preset, "seed": ds.seed}, {})
             stages["synth"] = synth
@@ -296,6 +297,10 @@ class RunPlan:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
             obj_ids, scene_ids, dataset_key = _bop_layout(root, ds)
+            bop = open_bop(root, ds)
+            # whether score can compute AR: ground truth added later must rescore
+            if not all((bop.scene_dir(s) / "scene_gt.json").is_file() for s in scene_ids):
+                score_extra = {"ground_truth": False}
             prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]
             for prior_file in prior_files:
                 if not prior_file.exists():
@@ -338,7 +343,8 @@ class RunPlan:
             name, "refine", refine_name, {"method": run.method, **rf.model_dump(), **_grey(ds)},
             {"register": stages["register"].key, "symmetries": stages["symmetries"].key})
         stages["score"] = self._stage(
-            name, "score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump()},
+            name, "score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump(),
+                                     **score_extra},
             {"refine": stages["refine"].key, "dataset": dataset_key})
         return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_ids=scene_ids, stages=stages)
 

@@ -122,3 +122,12 @@ def test_prior_pattern_must_match_one_file(tmp_path):
     (tmp_path / "d" / "cnos-fastsam_lmo-test_b.json").write_text("[]")
     with pytest.raises(cfg.ManifestError, match="must match exactly one file, found .*_a.json, .*_b.json"):
         resolve_prior(tmp_path, "d/cnos-fastsam_lmo-test*.json")
+
+
+def test_bop_root_from_the_environment(bop_root, monkeypatch):
+    monkeypatch.setenv("BOP_ROOT", str(bop_root))
+    run = cfg.load_run({"datasets": "lmo"})
+    assert run.bop_root == str(bop_root.resolve()) and RunPlan(run).available("lmo") == (True, "")
+    monkeypatch.delenv("BOP_ROOT")
+    assert RunPlan(cfg.load_run({"datasets": "lmo"})).available("lmo") == (
+        False, "lmo: skipped, no bop_root set (--config bop_root=/path/to/bop, or $BOP_ROOT)")

@@ -61,6 +61,8 @@ def test_each_layout_is_the_distributed_one(layouts):
         assert (ds / "models_eval" / "models_info.json").is_file()
         assert len(list(scene.glob(images))) == 2 and len(list((scene / "depth").glob(f"*{depth_ext}"))) == 2, name
         assert (scene / "scene_gt.json").is_file() == gt and (scene / "mask_visib").is_dir() == gt, name
+        # ground truth added later changes the score stage's key, so the dataset is scored then
+        assert _plan(root, name)["score"].params.get("ground_truth", True) == gt
         # the default prior pattern finds the detections file, suffix and all
         assert summaries[name].detections.name == f"cnos-fastsam_{name}-test_fixture.json"
         assert list(root.glob(man.prior_patterns()[0])) == [summaries[name].detections]
