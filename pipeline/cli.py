@@ -176,15 +176,10 @@ def _print_scores(rows: dict[str, dict]) -> str:
 def _publish_csv(plan, folder: Path) -> Path:
     """Copy the dataset's results CSV into ``folder`` atomically (a temporary sibling
     renamed into place); returns the copy."""
-    import os
-    import shutil
+    from pipeline.bop.jsonio import atomic_write_text
 
-    src = plan["refine"].item_dir("all") / plan.results_csv_name
-    folder.mkdir(parents=True, exist_ok=True)
     dst = folder / plan.results_csv_name
-    tmp = folder / f".{dst.name}.tmp"
-    shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    atomic_write_text(dst, (plan["refine"].item_dir("all") / plan.results_csv_name).read_text(encoding="utf-8"))
     return dst
 
 

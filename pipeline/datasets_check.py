@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-MIN_DIAMETER_MM = 5.0
+from pipeline.bop.dataset import MIN_DIAMETER_MM
 
 
 @dataclass
@@ -56,7 +56,7 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None) -> 
     """Check the dataset of ``manifest`` (a :class:`pipeline.config.DatasetManifest` of
     kind ``bop``) under ``bop_root``; ``priors`` as the run's (None: the dataset's
     default detections)."""
-    from pipeline.plan import open_bop
+    from pipeline.plan import missing_ground_truth, open_bop
 
     root = Path(bop_root) / (manifest.folder or manifest.name)
     rep = DatasetReport(manifest.name, root)
@@ -72,9 +72,9 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None) -> 
     images = sorted({(t.scene_id, t.im_id) for t in targets})
     scenes = sorted({s for s, _ in images})
     missing_images, sizes = _check_images(rep, bop, manifest, images)
-    gt_missing = [s for s in scenes if not (bop.scene_dir(s) / "scene_gt.json").is_file()]
+    gt_missing = missing_ground_truth(bop, scenes)
     if gt_missing and manifest.public_gt:
-        rep.warnings.append(f"{bop.scene_dir(gt_missing[0]) / 'scene_gt.json'}: not found ({len(gt_missing)} of "
+        rep.warnings.append(f"{gt_missing[0]}: not found ({len(gt_missing)} of "
                             f"{len(scenes)} target scenes lack ground truth): estimates will be made, but no AR")
     n_detections = _check_priors(rep, Path(bop_root), manifest, priors, infos, targets)
     per_target = Counter(t.inst_count for t in targets)

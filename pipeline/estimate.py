@@ -930,19 +930,13 @@ def render_overlay(mesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, rgb: np.nd
     return out
 
 
-def _save_rgb(path: Path, rgb: np.ndarray) -> None:
-    import cv2
-
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write the image")
-
-
 def _write_outputs(out: Path, assets: ModelAssets, run, geo, vis, rgb, depth, K, box, R, t, record: dict,
                    art: dict, steps: Steps) -> dict[str, Path]:
     """pose.json (written by the caller), overlay.png, points.png and the artifacts."""
     import cv2
     import pandas as pd
 
+    from pipeline.bop.dataset import save_rgb
     from pipeline.store import publish, save_arrays, write_table
     from stages.refine import CANDIDATE_COLUMNS, POSE_COLUMNS, SAR_COLUMNS
 
@@ -951,7 +945,7 @@ def _write_outputs(out: Path, assets: ModelAssets, run, geo, vis, rgb, depth, K,
     caption = (f"score {record['score']:.3f}  inliers {record['n_inliers']}  ICP fitness {record['fitness']:.2f}"
                + (f"  SAR variant {record['sar_variant']}" if record["sar_variant"] >= 0 else ""))
     files["overlay"] = out / "overlay.png"
-    _save_rgb(files["overlay"], render_overlay(assets.mesh, R, t, K, rgb, box, caption))
+    save_rgb(files["overlay"], render_overlay(assets.mesh, R, t, K, rgb, box, caption))
     pts_im = (0.5 * rgb).astype(np.uint8)
     allp = art["all_pixels"]
     pts_im[allp[:, 1], allp[:, 0]] = (0, 200, 0)  # every object point kept
@@ -959,7 +953,7 @@ def _write_outputs(out: Path, assets: ModelAssets, run, geo, vis, rgb, depth, K,
     x, y, w, h = (int(round(float(b))) for b in box)
     cv2.rectangle(pts_im, (x, y), (x + w - 1, y + h - 1), (255, 220, 0), 1)
     files["points"] = out / "points.png"
-    _save_rgb(files["points"], pts_im)
+    save_rgb(files["points"], pts_im)
 
     H, Wd = depth.shape
     reg = art["reg"]

@@ -191,11 +191,22 @@ def open_bop(root: Path, ds: cfg.DatasetManifest):
     return BopDataset(root, split=ds.split, split_type=ds.split_type, models_dir=ds.models, camera_file=ds.camera_file)
 
 
+def detector_name(prior_file: Path) -> str:
+    """The detector of a prior file: the part of its name before the first '_' (BOP's
+    ``<method>_<dataset>-<split>...json``)."""
+    return Path(prior_file).stem.split("_")[0]
+
+
 def prior_label(paths: list[Path]) -> str:
-    """Readable name of the prior files: their detector names (the part of each file
-    name before the first '_'), joined by '+'."""
-    names = [re.sub(r"[^A-Za-z0-9.-]", "", p.stem.split("_")[0]) or "prior" for p in paths]
-    return "+".join(names)
+    """Readable name of the prior files for a signature: their detector names, reduced to
+    the characters signatures allow, joined by '+'."""
+    return "+".join(re.sub(r"[^A-Za-z0-9.-]", "", detector_name(p)) or "prior" for p in paths)
+
+
+def missing_ground_truth(bop, scene_ids) -> list[Path]:
+    """The ``scene_gt.json`` files of ``scene_ids`` that the dataset (a
+    :class:`pipeline.bop.BopDataset`) lacks: private test ground truth (ITODD, HB)."""
+    return [bop.scene_dir(s) / "scene_gt.json" for s in scene_ids if not (bop.scene_dir(s) / "scene_gt.json").is_file()]
 
 
 # Parameters added after caches existed enter a key only when they change the output,
@@ -218,12 +229,14 @@ def _prior_params(patterns: list[str], p: cfg.SegmentPriorParams) -> dict[str, A
     return out
 
 
-def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str]:
+def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str, bool]:
+    """(target objects, target scenes, dataset fingerprint, whether every target scene has
+    ground truth) of a BOP dataset on disk."""
     bop = open_bop(root, ds)
     targets = bop.targets(root / ds.targets_file)
     obj_ids = sorted({t.obj_id for t in targets})
     scene_ids = sorted({t.scene_id for t in targets})
-    return obj_ids, scene_ids, bop.fingerprint()
+    return obj_ids, scene_ids, bop.fingerprint(), not missing_ground_truth(bop, scene_ids)
 
 
 class RunPlan:
@@ -296,10 +309,8 @@ class RunPlan:
             if not run.bop_root:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
-            obj_ids, scene_ids, dataset_key = _bop_layout(root, ds)
-            bop = open_bop(root, ds)
-            # whether score can compute AR: ground truth added later must rescore
-            if not all((bop.scene_dir(s) / "scene_gt.json").is_file() for s in scene_ids):
+            obj_ids, scene_ids, dataset_key, has_gt = _bop_layout(root, ds)
+            if not has_gt:  # score cannot compute AR; ground truth added later must rescore
                 score_extra = {"ground_truth": False}
             prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]
             for prior_file in prior_files:

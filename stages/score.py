@@ -14,28 +14,22 @@ the file to submit to the BOP evaluation server.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
-from pipeline.plan import DatasetPlan
+from pipeline.plan import DatasetPlan, missing_ground_truth
 from pipeline.store import publish
 
 CODE_VERSION = 2
 
 
-def missing_ground_truth(plan: DatasetPlan) -> list[str]:
-    """The ``scene_gt.json`` files of the target scenes that do not exist."""
-    bop = plan.bop()
-    return [str(bop.scene_dir(s) / "scene_gt.json") for s in plan.scene_ids
-            if not (bop.scene_dir(s) / "scene_gt.json").is_file()]
-
-
-def unscored_summary(plan: DatasetPlan, csv, missing: list[str]) -> dict:
+def unscored_summary(plan: DatasetPlan, bop, csv: Path, missing: list[Path]) -> dict:
     """What ``scores.json`` says of a dataset without public ground truth: counts, the
     BOP time per image, and where the CSV for the BOP server is."""
     from pipeline.bop import read_results_csv
     from pipeline.metrics.evaluate import mean_time_per_image
 
     df = read_results_csv(csv)
-    targets = plan.bop().targets(plan.root / plan.dataset.targets_file)
+    targets = bop.targets(plan.root / plan.dataset.targets_file)
     why = ("the test ground truth of this dataset is not public" if not plan.dataset.public_gt
            else f"{len(missing)} target scene(s) have no scene_gt.json (first: {missing[0]})")
     return {
@@ -57,10 +51,11 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
     sp = plan["score"]
     p = plan.run.stages.score
     csv = plan["refine"].item_dir("all") / plan.results_csv_name
-    missing = missing_ground_truth(plan)
+    bop = plan.bop()
+    missing = missing_ground_truth(bop, plan.scene_ids)
     with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
         if missing:
-            summary = unscored_summary(plan, csv, missing)
+            summary = unscored_summary(plan, bop, csv, missing)
             (w.dir / "scores.json").write_text(json.dumps({"summary": summary}, indent=1) + "\n")
             w.summary.update(summary)
             return

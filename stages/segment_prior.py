@@ -16,7 +16,7 @@ and the more confident one is kept.
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan
+from pipeline.plan import DatasetPlan, detector_name
 from pipeline.store import publish, write_table
 
 CODE_VERSION = 3
@@ -34,9 +34,10 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
     bop = plan.bop()
     targets = bop.targets(plan.root / plan.dataset.targets_file)
     obj_ids = bop.obj_ids()  # what is on disk (models_info), for index-style category ids
+    paths = plan.prior_paths
     sources = []
-    for path in plan.prior_paths:
-        name = path.stem.split("_")[0]
+    for path in paths:
+        name = detector_name(path)
         if any(name == n for n, _ in sources):
             name = str(path)  # two files of one detector: their paths tell them apart
         dets = map_category_ids(load_detections(path, source=name), obj_ids, p.category_ids, path=path)
@@ -49,12 +50,12 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
         detections, merge_report = sources[0][1], None
     else:
         detections, merge_report = merge_detections(sources, iou_threshold=p.merge_iou)
-    source = ", ".join(str(path) for path in plan.prior_paths)
+    source = ", ".join(str(path) for path in paths)
     table, report = select_candidates(detections, targets, top_k=p.top_k, min_score=p.min_score,
                                       min_area=p.min_area, source=source)
     with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": sp.key, "stage": "segment_prior"})
         w.summary.update(report)
-        w.summary["prior_files"] = [str(path) for path in plan.prior_paths]
+        w.summary["prior_files"] = [str(path) for path in paths]
         if merge_report is not None:
             w.summary["merge"] = merge_report

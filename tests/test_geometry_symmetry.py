@@ -27,8 +27,9 @@ from pipeline.geometry.symmetry import (
     symmetries_to_dict,
     transform_distance,
 )
+from pipeline.geometry.extent import point_cloud_diameter
 from pipeline.geometry.transforms import random_rotation, rotation_about_axis
-from pipeline.synth.objects import build_object, model_diameter
+from pipeline.synth.objects import build_object
 
 N_POINTS = 20000
 ANGLE_TOL_DEG = 2.0
@@ -155,7 +156,7 @@ def test_random_pose_three_fold_gives_exactly_c3():
     T0[:3, :3], T0[:3, 3] = R0, t0
     P = points.astype(np.float64) @ R0.T + t0
     N = normals.astype(np.float64) @ R0.T
-    diameter = model_diameter(P)
+    diameter = point_cloud_diameter(P)
     sym = estimate_symmetries(P, diameter, N)
     assert not sym.continuous
     assert len(sym.discrete) == 2
@@ -173,7 +174,7 @@ def test_random_pose_three_fold_gives_exactly_c3():
 
 def test_estimation_without_normals_three_fold():
     points, _ = sample_surface(_three_bump_disc(), 12000, seed=4)
-    sym = estimate_symmetries(points, model_diameter(points), None, SymmetryParams(seed=1))
+    sym = estimate_symmetries(points, point_cloud_diameter(points), None, SymmetryParams(seed=1))
     assert len(sym.discrete) == 2 and not sym.continuous
 
 

@@ -33,6 +33,9 @@ from .ply import load_mesh
 _RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _DEPTH_EXTS = (".png", ".tif", ".tiff")
 DEFAULT_TARGETS = "test_targets_bop19.json"
+MIN_DIAMETER_MM = 5.0
+"""Models are in mm; a smaller diameter means the model is in metres (checked by
+``freeze datasets check`` and when ``freeze estimate`` wraps a frame)."""
 
 
 # ---------------------------------------------------------------------------- records
@@ -615,7 +618,9 @@ def write_targets(path: Path | str, targets: Iterable[Target]) -> None:
     )
 
 
-def _imwrite(path: Path, image: np.ndarray) -> None:
+def write_image(path: Path, image: np.ndarray) -> None:
+    """Write ``image`` as OpenCV stores it (BGR or single channel; the extension picks the
+    format), creating the folder; OSError when OpenCV cannot."""
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), image):
         raise OSError(f"{path}: OpenCV could not write the image (unsupported extension?)")
@@ -635,7 +640,7 @@ def save_depth_png(path: Path | str, depth_mm: np.ndarray, depth_scale: float) -
             f"save_depth_png({path}): depth/depth_scale must lie in [0, 65535] "
             f"(max depth {np.nanmax(depth) if depth.size else 0:.1f} mm at scale {depth_scale}); use a larger depth_scale"
         )
-    _imwrite(Path(path), raw.astype(np.uint16))
+    write_image(Path(path), raw.astype(np.uint16))
 
 
 def save_mask_png(path: Path | str, mask: np.ndarray) -> None:
@@ -643,7 +648,7 @@ def save_mask_png(path: Path | str, mask: np.ndarray) -> None:
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"save_mask_png({path}): mask must be (H, W), got {mask.shape}")
-    _imwrite(Path(path), np.where(mask.astype(bool), 255, 0).astype(np.uint8))
+    write_image(Path(path), np.where(mask.astype(bool), 255, 0).astype(np.uint8))
 
 
 def save_rgb(path: Path | str, rgb: np.ndarray) -> None:
@@ -651,4 +656,4 @@ def save_rgb(path: Path | str, rgb: np.ndarray) -> None:
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"save_rgb({path}): expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
-    _imwrite(Path(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    write_image(Path(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))

@@ -31,6 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from .dataset import (
+    MIN_DIAMETER_MM,
     CameraInfo,
     GtPose,
     ModelInfo,
@@ -52,9 +53,6 @@ the rule of :class:`pipeline.config.DatasetManifest`."""
 
 DETECTOR_RE = re.compile(r"^[a-z0-9]+(-[a-z0-9]+)*$")
 """Detector names: as BOP's ``cnos-fastsam`` (no '_', which separates it from the dataset)."""
-
-MIN_DIAMETER_MM = 5.0
-"""A smaller model diameter is taken to be in metres (as ``freeze datasets check`` does)."""
 
 DEPTH_SCALE_STEPS = (1.0, 2.0, 2.5, 5.0)
 """Multipliers (times powers of ten) tried when the preferred depth scale overflows uint16."""
@@ -107,18 +105,13 @@ def model_info_from_vertices(vertices: np.ndarray) -> ModelInfo:
     """models_info entry of (V, 3) vertices in mm: bounding box, and the diameter as the
     largest distance between two vertices, computed exactly over the convex hull's vertices
     (where it is attained; all vertices when the hull is degenerate)."""
-    from scipy.spatial import ConvexHull, QhullError
-    from scipy.spatial.distance import pdist
+    from pipeline.geometry.extent import point_cloud_diameter
 
     v = np.asarray(vertices, np.float64).reshape(-1, 3)
     if len(v) < 2:
         raise ValueError(f"a model needs at least 2 vertices, got {len(v)}")
-    try:
-        hull = v[ConvexHull(v).vertices]
-    except (QhullError, ValueError):  # flat or collinear
-        hull = v
     lo, hi = v.min(axis=0), v.max(axis=0)
-    return ModelInfo(diameter=float(pdist(hull).max()), min_xyz=lo, size_xyz=hi - lo)
+    return ModelInfo(diameter=point_cloud_diameter(v), min_xyz=lo, size_xyz=hi - lo)
 
 
 def _write_model(src: Path, models_dir: Path, obj_id: int, model_scale: float) -> ModelInfo:

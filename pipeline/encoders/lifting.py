@@ -24,8 +24,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.spatial import ConvexHull, cKDTree
-from scipy.spatial.distance import pdist
+from scipy.spatial import cKDTree
 
 from pipeline.encoders.registry import VisualEncoder
 from pipeline.geometry.crops import (  # re-exported: the crop geometry of lifting
@@ -36,6 +35,7 @@ from pipeline.geometry.crops import (  # re-exported: the crop geometry of lifti
     square_crop_box,
 )
 from pipeline.geometry.depth import lift_depth
+from pipeline.geometry.extent import point_cloud_diameter  # re-exported
 
 View = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
@@ -73,18 +73,6 @@ def sample_features_at_pixels(
     grid = torch.as_tensor(2.0 * (c + 0.5) / size - 1.0, dtype=torch.float32)
     out = F.grid_sample(feats[None], grid[None, None], mode="bilinear", padding_mode="border", align_corners=False)
     return out[0, :, 0, :].T.contiguous().numpy()
-
-
-def point_cloud_diameter(points: np.ndarray) -> float:
-    """Largest distance (mm) between two points of (N, 3), via the convex hull."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(pts) < 2:
-        return 0.0
-    try:
-        pts = pts[ConvexHull(pts).vertices]
-    except Exception:  # degenerate (flat or collinear) clouds: use all points
-        pass
-    return float(pdist(pts).max())
 
 
 def lift_model_visual_features(

@@ -537,10 +537,8 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
 def write_report(rp, dataset: str, out: Path, samples: int = 12, run_label: str | None = None) -> Path:
     """Write the report page of ``dataset`` (see :func:`build_report`) to ``out``
     atomically (a temporary sibling renamed into place); returns ``out``."""
+    from pipeline.bop.jsonio import atomic_write_text
+
     out = Path(out)
-    page = build_report(rp, dataset, samples=samples, run_label=run_label)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(out)
+    atomic_write_text(out, build_report(rp, dataset, samples=samples, run_label=run_label))
     return out

@@ -21,15 +21,14 @@ length is scaled with the image width so that the synthetic scene fills the view
 
 from __future__ import annotations
 
-import json
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import numpy as np
 
+from pipeline.bop.dataset import write_image
 from pipeline.bop.detections import load_detections, save_detections
 from pipeline.bop.jsonio import load_json, save_bop_json
 
@@ -117,9 +116,9 @@ def _write_dataset(src: Path, dst: Path, manifest, obj_map: dict[int, int], scen
             _write_image(path, s_out / manifest.image_dir / f"{path.stem}{manifest.image_ext}", manifest.image_dir)
         for path in sorted((s_in / "depth").glob("*.png")):
             depth = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
-            _imwrite(s_out / "depth" / f"{path.stem}{manifest.depth_ext}", depth)
+            write_image(s_out / "depth" / f"{path.stem}{manifest.depth_ext}", depth)
         if manifest.public_gt:
-            gt = json.loads((s_in / "scene_gt.json").read_text())
+            gt = load_json(s_in / "scene_gt.json")
             save_bop_json(s_out / "scene_gt.json", {
                 int(im): [{**g, "obj_id": obj_map[g["obj_id"]]} for g in items] for im, items in gt.items()})
             shutil.copy2(s_in / "scene_gt_info.json", s_out / "scene_gt_info.json")
@@ -130,10 +129,4 @@ def _write_dataset(src: Path, dst: Path, manifest, obj_map: dict[int, int], scen
 def _write_image(src_png: Path, dst: Path, image_dir: str) -> None:
     bgr = cv2.imread(str(src_png), cv2.IMREAD_COLOR)
     # ITODD's grey camera: one 8-bit channel
-    _imwrite(dst, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if image_dir == "gray" else bgr)
-
-
-def _imwrite(path: Path, image: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"{path}: OpenCV could not write the image")
+    write_image(dst, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if image_dir == "gray" else bgr)

@@ -28,10 +28,9 @@ from typing import Callable
 
 import numpy as np
 import trimesh
-from scipy.spatial import ConvexHull
-from scipy.spatial.distance import pdist
 
 from pipeline.bop import ModelInfo
+from pipeline.geometry.extent import point_cloud_diameter
 
 from .meshkit import (
     Patch,
@@ -84,7 +83,7 @@ class SynthObject:
 
     @property
     def diameter(self) -> float:
-        return model_diameter(np.asarray(self.model.vertices))
+        return point_cloud_diameter(np.asarray(self.model.vertices))
 
     def model_info(self) -> ModelInfo:
         v = np.asarray(self.model.vertices)
@@ -96,12 +95,6 @@ class SynthObject:
             symmetries_discrete=[s.copy() for s in self.symmetries_discrete],
             symmetries_continuous=[{k: np.asarray(v).copy() for k, v in s.items()} for s in self.symmetries_continuous],
         )
-
-
-def model_diameter(vertices: np.ndarray) -> float:
-    """Largest distance between two vertices (mm); attained on the convex hull."""
-    hull = ConvexHull(vertices)
-    return float(pdist(vertices[hull.vertices]).max())
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -419,7 +412,7 @@ def build_object(obj_id: int, eval_spacing: float | None = None) -> SynthObject:
     model = trimesh.Trimesh(vertices=v, faces=f, vertex_normals=vertex_normals(v, f), process=False)
     model.visual = trimesh.visual.ColorVisuals(model, vertex_colors=np.column_stack([col, np.full(len(col), 255, np.uint8)]))
     if eval_spacing is None:
-        eval_spacing = float(np.clip(model_diameter(v) / 40.0, 2.5, 5.0))
+        eval_spacing = float(np.clip(point_cloud_diameter(v) / 40.0, 2.5, 5.0))
     ev, ef, _ = concatenate(builder(eval_spacing).patches)
     eval_mesh = merged_mesh(ev - c, ef)
     return SynthObject(obj_id, name, model, eval_mesh, eval_spacing, disc, cont)
