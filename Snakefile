@@ -10,12 +10,12 @@ from snakemake.utils import min_version
 min_version("9.0")
 
 from pipeline.config import load_run
-from pipeline.plan import RunPlan, obj_item, scene_item
+from pipeline.plan import RunPlan
 
 RUN = load_run(config)          # manifests/runs/default.yaml + --config overrides
 PLAN = RunPlan(RUN)
 DATASETS = []
-for _ds in RUN.datasets:
+for _ds in PLAN.dataset_names:
     _ok, _why = PLAN.available(_ds)
     if _ok:
         DATASETS.append(_ds)
@@ -50,10 +50,13 @@ def stage_plan(wc, stage):
     return sp
 
 
-def dataset_input(wc):
-    """The synthetic dataset's manifest, for synthetic datasets; nothing for BOP ones."""
-    plan = PLAN[wc.ds]
-    return [str(plan["synth"].manifest("dataset"))] if "synth" in plan.stages else []
+def stage_inputs(stage, kind):
+    """Input function of the rule running ``stage`` for items of ``kind``: the manifests
+    of everything the stage's declaration (pipeline/stage_graph.py) says it reads."""
+    def inputs(wc):
+        item = {"obj": lambda: f"obj_{wc.obj}", "scene": lambda: f"scene_{wc.scene}"}.get(kind, lambda: kind)()
+        return [str(p) for p in PLAN[wc.ds].input_manifests(stage, item)]
+    return inputs
 
 
 wildcard_constraints:

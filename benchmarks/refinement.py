@@ -86,7 +86,7 @@ def ranking_outcomes(plan) -> tuple[int, dict[str, float]]:
     (MSSD to the nearest ground-truth instance, declared symmetries included, below 0.2
     of the diameter; model_eval vertices, every 7th), how often each ranking puts a
     correct one first: (number of such targets, {ranking: fraction})."""
-    from pipeline.metrics.symmetry import model_symmetries
+    from pipeline.metrics.bop_symmetries import model_symmetries
     from pipeline.plan import scene_item
     from pipeline.store import read_table
 
@@ -144,7 +144,7 @@ def main() -> None:
                      + " | ".join(f"{group_ar(r.per_object, ids):.3f}" for ids in GROUPS.values())
                      + f" | {refine_s / max(1, r.n_targets):.2f} |")
         print(lines[-1], flush=True)
-        if rf.sar and rf.select_by == "score":
+        if rf.sar and rf.select_by == "evidence":
             n_mixed, ranks = ranking_outcomes(plan)
             rank_lines = ["", f"Choosing among a target's refined candidates (`{name}`): on the {n_mixed} targets whose "
                           "candidates include both a correct one (MSSD < 0.2 diameter) and a wrong one, how often "

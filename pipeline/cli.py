@@ -46,7 +46,7 @@ def stage(
     """Run one stage for one item (what each Snakemake job calls)."""
     from pipeline import store
     from pipeline.plan import plan_from_json
-    from stages import stage_module
+    from stages import run_stage
 
     store.mark_job_start()
     plan = plan_from_json(run_json, parse_overrides(config))[dataset]
@@ -57,7 +57,7 @@ def stage(
         raise typer.Exit(2)
     console.print(f"[bold]{name}[/] {dataset}/{item} -> {sp.item_dir(item)}")
     try:
-        stage_module(name).run(plan, item, progress=progress)
+        run_stage(plan, name, item, progress=progress)
     except Exception as e:
         console.print(f"[red]stage {name} failed on {dataset}/{item}: {type(e).__name__}: {e}")
         raise
@@ -117,7 +117,7 @@ def plan(
 
     rp = plan_from_json(None, parse_overrides(config))
     table = Table("dataset", "stage", "signature", "folder")
-    for ds in dataset or rp.run.datasets:
+    for ds in dataset or rp.dataset_names:
         ok, why = rp.available(ds)
         if not ok:
             console.print(why)
@@ -176,7 +176,7 @@ def _print_scores(rows: dict[str, dict]) -> str:
 def _publish_csv(plan, folder: Path) -> Path:
     """Copy the dataset's results CSV into ``folder`` atomically (a temporary sibling
     renamed into place); returns the copy."""
-    from pipeline.bop.jsonio import atomic_write_text
+    from pipeline.store import atomic_write_text
 
     dst = folder / plan.results_csv_name
     atomic_write_text(dst, (plan["refine"].item_dir("all") / plan.results_csv_name).read_text(encoding="utf-8"))
@@ -197,7 +197,7 @@ def ar_table(
 
     rp = plan_from_json(run_json, parse_overrides(config))
     rows = {}
-    for ds in rp.run.datasets:
+    for ds in rp.dataset_names:
         ok, why = rp.available(ds)
         if not ok:
             console.print(why)
@@ -304,16 +304,16 @@ def datasets_check(
         raise typer.Exit(1)
 
 
-def _register_commands() -> None:
-    """Commands that live in their own modules (each has ``register(app, show_app)``)."""
+def _add_module_commands() -> None:
+    """Commands that live in their own modules (each has ``add_commands(app, show_app)``)."""
     from pipeline import estimate_cli, inspect_cli
     from pipeline.report import cli as report_cli
 
     for module in (inspect_cli, report_cli, estimate_cli):
-        module.register(app, show_app)
+        module.add_commands(app, show_app)
 
 
-_register_commands()
+_add_module_commands()
 
 
 def main() -> None:  # pragma: no cover

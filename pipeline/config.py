@@ -93,10 +93,10 @@ class RefineParams(_Strict):
     max_corr_frac: float = Field(0.1, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
     iterations: int = Field(30, ge=1, description="ICP iterations per threshold of the coarse-to-fine schedule")
     point_to_plane: bool = True
-    select_by: Literal["score", "inliers", "prior", "fitness"] = Field(
-        "score", description="how a target's candidates are ranked: combined registration evidence (inlier "
-                             "ratio x ICP fitness), RANSAC inliers (the paper), the prior's confidence, or "
-                             "the ICP fitness alone")
+    select_by: Literal["evidence", "inliers", "prior", "fitness"] = Field(
+        "evidence", description="how a target's candidates are ranked: the registration evidence (RANSAC inlier "
+                                "ratio x ICP fitness), RANSAC inliers (the paper), the prior's confidence, or "
+                                "the ICP fitness alone ('score' is accepted for 'evidence', its former name)")
     duplicate_frac: float = Field(0.25, gt=0, description="candidates of a target whose translations are closer "
                                                           "than this fraction of the diameter are one instance")
     sar: bool = Field(True, description="symmetry-aware refinement of objects with geometric symmetries")
@@ -111,6 +111,11 @@ class RefineParams(_Strict):
                                                "cosine (cancels the scene light's colour cast; the paper does not)")
     sar_min_cover: float = Field(0.5, gt=0, le=1, description="feature cells used by SAR: those the render covers "
                                                               "by at least this fraction")
+
+    @field_validator("select_by", mode="before")
+    @classmethod
+    def _former_name(cls, v: Any) -> Any:
+        return "evidence" if v == "score" else v
 
 
 class SymmetriesParams(_Strict):
@@ -185,6 +190,10 @@ class DatasetManifest(_Strict):
     image_size: tuple[int, int] | None = Field(None, description="test image (width, height) in px")
     public_gt: bool = Field(True, description="false when the test ground truth is private (ITODD, HB): the "
                                               "results CSV is made for the BOP server and no AR is computed here")
+    fingerprint: Literal["layout", "content"] = Field(
+        "layout", description="what the cache keys of a BOP dataset on disk cover: 'layout' (camera, models_info, "
+                              "targets, model file names and sizes: cheap on large datasets) or 'content' (every "
+                              "file's bytes; the model side keyed by the models' bytes alone)")
 
     @property
     def image_mode(self) -> str:
@@ -297,13 +306,26 @@ def load_encoder_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Encod
     return _validate(EncoderManifest, _read_yaml(path), str(path))
 
 
+def is_manifest_path(entry: str) -> bool:
+    """Whether a run's dataset entry is a manifest file (``.../name.yaml``) rather than a
+    name in ``manifests/datasets/``."""
+    return str(entry).endswith((".yaml", ".yml"))
+
+
 def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> DatasetManifest:
-    path = Path(manifest_dir) / "datasets" / f"{name}.yaml"
-    if not path.exists():
-        known = sorted(p.stem for p in (Path(manifest_dir) / "datasets").glob("*.yaml"))
-        raise ManifestError(f"{path}: no dataset manifest named '{name}' (known: {', '.join(known)})")
+    """The dataset manifest ``manifests/datasets/<name>.yaml``, or the file ``name`` when
+    it is a path ending in ``.yaml`` (e.g. the one ``freeze estimate`` writes)."""
+    if is_manifest_path(name):
+        path = Path(name)
+        if not path.exists():
+            raise ManifestError(f"{path}: dataset manifest not found")
+    else:
+        path = Path(manifest_dir) / "datasets" / f"{name}.yaml"
+        if not path.exists():
+            known = sorted(p.stem for p in (Path(manifest_dir) / "datasets").glob("*.yaml"))
+            raise ManifestError(f"{path}: no dataset manifest named '{name}' (known: {', '.join(known)})")
     ds = _validate(DatasetManifest, _read_yaml(path), str(path))
-    if ds.name != name:
+    if not is_manifest_path(name) and ds.name != name:
         raise ManifestError(f"{path}: field 'name' is '{ds.name}' but the file is named '{name}'")
     if ds.kind == "synthetic" and not ds.preset:
         raise ManifestError(f"{path}: field 'preset' is required for synthetic datasets")
@@ -360,6 +382,9 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
         if key in _OVERRIDES and value is not None:
             if key in ("datasets", "priors") and isinstance(value, str):
                 value = [v for v in value.split(",") if v]
+            if key == "datasets":
+                # manifest files: absolute, since stage jobs may run elsewhere
+                value = [str(Path(v).expanduser().resolve()) if is_manifest_path(v) else v for v in value]
             if key == "weights_dir":
                 # stage jobs may run elsewhere: fix a relative folder to where it was given
                 value = str(Path(value).expanduser().resolve())
@@ -371,3 +396,33 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
     if data.get("bop_root"):
         data["bop_root"] = str(Path(data["bop_root"]).expanduser().resolve())
     return _validate(RunManifest, data, str(run_path))
+
+
+def load_run_with_overrides(overrides: Mapping[str, Any] | None = None) -> RunManifest:
+    """The run manifest with command-line overrides.
+
+    Flat keys go to :func:`load_run` as on the Snakemake command line
+    (``visual=dinov2-vits14``, ``run=manifests/runs/refine-icp.yaml``, ...). Dotted keys
+    set one stage parameter: ``register.max_iterations=20000`` or
+    ``stages.register.max_iterations=20000`` (string values parsed as YAML scalars).
+    """
+    flat, dotted = {}, {}
+    for k, v in (overrides or {}).items():
+        (dotted if "." in k else flat)[k] = v
+    run = load_run(flat)
+    if not dotted:
+        return run
+    data = run.model_dump()
+    for k, v in dotted.items():
+        path = k.split(".")
+        if path[0] != "stages":
+            path = ["stages"] + path
+        node = data
+        for p in path[:-1]:
+            if not isinstance(node, dict) or p not in node:
+                raise ManifestError(f"--config {k}: unknown key '{p}' (stages: {', '.join(data['stages'])})")
+            node = node[p]
+        if path[-1] not in node:
+            raise ManifestError(f"--config {k}: unknown parameter '{path[-1]}' (known: {', '.join(node)})")
+        node[path[-1]] = yaml.safe_load(v) if isinstance(v, str) else v
+    return _validate(RunManifest, data, "--config")

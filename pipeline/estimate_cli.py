@@ -1,17 +1,273 @@
-"""``freeze estimate``: the method on one RGB-D image of one object (see :mod:`pipeline.estimate`).
+"""``freeze estimate``: the method on one RGB-D image of one object.
 
-Wired into the ``freeze`` app by ``register(app, show_app)``.
+The frame is wrapped as a one-image BOP dataset with its prior and a dataset manifest
+(:mod:`pipeline.estimate.frame`), and the pipeline's own stages run on it, in this
+process, through the run plan: the model side (``render_templates``, ``symmetries``,
+``model_features``) is taken from the cache when an earlier frame of the same model
+built it, and the scene side (``segment_prior``, ``scene_features``, ``register``,
+``refine``) runs on the frame. ``freeze estimate`` therefore gives what ``snakemake
+bop_all`` gives on the wrapped frame (``tests/test_estimate.py`` checks it to 1e-6).
+
+Running stages makes this a command-layer module, like :mod:`pipeline.cli`: the
+library under ``pipeline/`` never imports ``stages``. Wired into the ``freeze`` app by
+``add_commands(app, show_app)``.
 """
 
 from __future__ import annotations
 
+import math
+import shutil
+import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Mapping, Optional, Sequence
 
+import numpy as np
 import typer
 
+from pipeline.estimate.inputs import EstimateError
 
-def register(app: typer.Typer, show_app: typer.Typer) -> None:
+MODEL_STAGES = ("render_templates", "symmetries", "model_features")
+SCENE_STAGES = ("segment_prior", "scene_features", "register", "refine")
+ESTIMATE_CACHE = "_estimate"
+"""Folder under the cache root holding the artifacts of ``freeze estimate`` (per frame name)."""
+
+
+@dataclass
+class EstimateResult:
+    """The estimate: R (3, 3), t (3,) mm model-to-camera, evidence (RANSAC inlier ratio x
+    ICP fitness), ``record`` (everything written to pose.json), the output files, whether
+    the model side came from the cache, the steps' durations (s), and the artifact
+    folder of every stage that ran or was reused."""
+
+    R: np.ndarray
+    t: np.ndarray
+    evidence: float
+    record: dict[str, Any]
+    out_dir: Path | None
+    files: dict[str, Path]
+    model_cache_reused: bool
+    timings: dict[str, float]
+    artifacts: dict[str, Path] = field(default_factory=dict)
+
+
+def frame_plan(run, frame, cache: Path | None = None):
+    """The :class:`pipeline.plan.DatasetPlan` of a wrapped frame under ``run``, its
+    artifacts under ``<cache root>/_estimate/``."""
+    from pipeline.plan import RunPlan, cache_root
+
+    frame_run = run.model_copy(update={"datasets": [str(frame.manifest)], "bop_root": str(frame.bop_root.resolve())})
+    return RunPlan(frame_run, cache=Path(cache or cache_root()) / ESTIMATE_CACHE)[frame.root.name]
+
+
+def run_stages(plan, stages_items: Sequence[tuple[str, str]], steps) -> dict[str, bool]:
+    """Run each (stage, item) whose artifact is not in the cache yet; stage -> reused."""
+    from pipeline import store
+    from stages import run_stage
+
+    reused = {}
+    for stage, item in stages_items:
+        reused[stage] = plan[stage].manifest(item).exists()
+        if reused[stage]:
+            steps.note(f"{stage}: reused {plan[stage].item_dir(item)}")
+            continue
+        with steps(stage):
+            store.mark_job_start()
+            run_stage(plan, stage, item, progress=False)
+    return reused
+
+
+def estimate(
+    model: Path | str,
+    rgb: Path | str,
+    depth: Path | str,
+    camera: Path | str,
+    *,
+    mask: Path | str | None = None,
+    bbox: Sequence[float] | str | None = None,
+    depth_scale: float | None = None,
+    model_scale: float = 1.0,
+    out_dir: Path | str | None = None,
+    bop_name: str | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    cache: Path | str | None = None,
+    progress: bool = False,
+    console: Any = None,
+) -> EstimateResult:
+    """Estimate the pose of the object ``model`` (PLY, mm) in one RGB-D image.
+
+    mask: object mask (image, or a detections JSON; see
+    :func:`pipeline.estimate.inputs.load_mask`), or bbox: ``(x, y, w, h)`` px /
+    ``"x,y,w,h"`` (exactly one of them; with a box, the object's points are found by
+    :func:`pipeline.geometry.box_points.box_candidate_points` and their pixels become
+    the prior's mask). depth_scale: mm per depth unit (default: the camera file's
+    ``depth_scale``, else 1). model_scale: multiplies the model's coordinates (1000 for
+    a model in metres). out_dir: where to write ``pose.json``, ``overlay.png``,
+    ``points.png``, a copy of the stages' artifacts, and the frame as the BOP dataset
+    ``<out_dir>/bop/<bop_name>`` with ``<out_dir>/bop/<bop_name>.yaml`` (a temporary
+    folder when None; nothing is kept then but the cache). bop_name: default
+    :func:`pipeline.bop.wrap.default_name` of the model file. overrides: run-manifest
+    overrides (:func:`pipeline.config.load_run_with_overrides`). cache: cache root
+    (default ``$FREEZE_CACHE`` or ``<project>/cache``).
+    """
+    from pipeline.bop import wrap
+    from pipeline.config import load_run_with_overrides
+    from pipeline.estimate.frame import write_frame_dataset
+    from pipeline.estimate.inputs import (load_camera, load_depth, load_mask, load_model, load_rgb, parse_bbox,
+                                          scale_warning)
+    from pipeline.geometry.box_points import box_candidate_points
+    from pipeline.geometry.crops import mask_to_bbox
+    from pipeline.plan import build_encoders
+    from pipeline.progress import StepTimer
+
+    steps = StepTimer(progress, console)
+    if (mask is None) == (bbox is None):
+        raise EstimateError("give exactly one localisation prior: --mask MASK.png or --bbox x,y,w,h")
+    bop_name = bop_name if bop_name is not None else wrap.default_name(model)
+    try:
+        wrap.check_name(bop_name)
+    except ValueError as e:
+        raise EstimateError(f"--bop-name: {e}") from None
+    with steps("inputs"):
+        run = load_run_with_overrides(overrides)
+        cam = load_camera(camera)
+        for name, p in (("model", model), ("RGB", rgb), ("depth", depth)):
+            if not Path(p).is_file():
+                raise EstimateError(f"{p}: {name} file not found")
+        if depth_scale is not None and not (depth_scale > 0 and math.isfinite(depth_scale)):
+            raise EstimateError(f"--depth-scale must be a positive number, got {depth_scale}")
+        scale = depth_scale if depth_scale is not None else (cam.depth_scale if cam.depth_scale is not None else 1.0)
+        scale_src = "--depth-scale" if depth_scale is not None else (f"{camera}" if cam.depth_scale is not None else "default")
+        rgb_im = load_rgb(rgb)
+        depth_im = load_depth(depth, scale)
+        if rgb_im.shape[:2] != depth_im.shape:
+            raise EstimateError(f"{depth}: depth is {depth_im.shape[1]}x{depth_im.shape[0]} px but {rgb} is "
+                                f"{rgb_im.shape[1]}x{rgb_im.shape[0]}")
+        H, W = depth_im.shape
+        mask_im = load_mask(mask, (H, W)) if mask is not None else None
+        if bbox is not None:
+            box = parse_bbox(bbox)
+            if box[0] >= W or box[1] >= H or box[0] + box[2] <= 0 or box[1] + box[3] <= 0:
+                raise EstimateError(f"--bbox {box}: lies outside the {W}x{H} image")
+        else:
+            box = tuple(float(v) for v in mask_to_bbox(mask_im))
+        mesh, diameter = load_model(model, model_scale)
+        geo, vis = build_encoders(run)
+    steps.note(f"camera: {cam.form}; depth scale {scale:g} mm/unit ({scale_src}); image {W}x{H}; "
+               f"model diameter {diameter:.1f} mm; encoders {geo.signature()} + {vis.signature()}")
+    warning = scale_warning(depth_im, cam.K, box, diameter)
+    if warning:
+        steps.warn(warning)
+    kept = None
+    if mask_im is None:
+        with steps("box prior"):
+            sel = box_candidate_points(depth_im, cam.K, box, diameter, seed=run.stages.scene_features.seed)
+        if len(sel.points) == 0:
+            raise EstimateError(f"no depth point of the object found in the box {list(box)}: check the box and the depth image")
+        kept = np.zeros((H, W), bool)
+        kept[sel.pixels[:, 1], sel.pixels[:, 0]] = True
+        prior_details = sel.details
+    else:
+        prior_details = {"mask_pixels": int(mask_im.sum()), "valid_depth": int((mask_im & (depth_im > 0)).sum())}
+
+    work = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="freeze-estimate-"))
+    try:
+        with steps("write the frame as a BOP dataset"):
+            try:
+                frame = write_frame_dataset(work / "bop", bop_name, rgb=rgb_im, depth_mm=depth_im, K=cam.K,
+                                            model_path=Path(model), model_scale=model_scale, mask=mask_im,
+                                            bbox=box, kept_mask=kept)
+            except ValueError as e:
+                raise EstimateError(f"writing the BOP dataset {work / 'bop' / bop_name}: {e}") from None
+        plan = frame_plan(run, frame, Path(cache) if cache else None)
+        obj, scene = frame.obj_item(), frame.scene_item()
+        reused = run_stages(plan, [(s, obj) for s in MODEL_STAGES], steps)
+        run_stages(plan, [(s, "all" if s == "segment_prior" else scene) for s in SCENE_STAGES], steps)
+        return _finish(plan, frame, work if out_dir is not None else None, run=run, mesh=mesh, diameter=diameter,
+                       rgb=rgb_im, K=cam.K, box=box, steps=steps, model_cache_reused=all(reused.values()),
+                       prior_details=prior_details,
+                       inputs={"model": str(Path(model).resolve()), "rgb": str(Path(rgb).resolve()),
+                               "depth": str(Path(depth).resolve()), "camera": str(Path(camera).resolve()),
+                               "mask": str(Path(mask).resolve()) if mask is not None else None,
+                               "prior": "mask" if mask is not None else "bbox", "bbox": [float(v) for v in box],
+                               "depth_scale": scale, "depth_scale_from": scale_src, "model_scale": model_scale,
+                               "camera_form": cam.form, "K": cam.K.tolist(), "image_size": [W, H]},
+                       encoders={"geometric": geo.signature(), "visual": vis.signature()})
+    finally:
+        if out_dir is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: np.ndarray, K: np.ndarray, box,
+            steps, model_cache_reused: bool, prior_details: dict, inputs: dict, encoders: dict) -> EstimateResult:
+    """Read the estimate back from the artifacts; write pose.json, the pictures and the
+    artifacts' copies to ``out``."""
+    from pipeline.bop.dataset import save_rgb
+    from pipeline.estimate.frame import IM_ID, SCENE_ID
+    from pipeline.estimate.record import candidate_record, dumps, jsonable
+    from pipeline.report.overlay import points_picture, render_overlay
+    from pipeline.scene_side import candidate_points
+    from pipeline.store import atomic_write_text, load_arrays
+
+    rec = candidate_record(plan, frame)
+    R, t = rec.pop("R"), rec.pop("t")
+    scene, obj = frame.scene_item(), frame.obj_item()
+    artifacts = {s: plan[s].item_dir(obj) for s in MODEL_STAGES}
+    artifacts.update({s: plan[s].item_dir("all" if s == "segment_prior" else scene) for s in SCENE_STAGES})
+    record: dict[str, Any] = {
+        "R": R.tolist(), "t": t.tolist(), "evidence": rec.pop("evidence"),
+        "cam_R_m2c": R.reshape(-1).tolist(), "cam_t_m2c": t.tolist(),
+        **{k: v for k, v in rec.items() if not k.endswith("_symmetries")},
+        "prior_details": prior_details,
+        "inputs": inputs,
+        "model": {"diameter_mm": diameter, "cache_reused": model_cache_reused,
+                  "artifacts": {s: str(artifacts[s]) for s in MODEL_STAGES},
+                  "n_discrete_symmetries": rec["n_discrete_symmetries"],
+                  "n_continuous_symmetries": rec["n_continuous_symmetries"]},
+        "artifacts": {s: str(artifacts[s]) for s in SCENE_STAGES},
+        "encoders": encoders,
+        "units": "R: model-to-camera rotation; t: mm (OpenCV camera, BOP convention)",
+    }
+    files: dict[str, Path] = {}
+    if out is not None:
+        with steps("write outputs"):
+            caption = (f"evidence {record['evidence']:.3f}  inliers {record['n_inliers']}  "
+                       f"ICP fitness {record['fitness']:.2f}"
+                       + (f"  SAR variant {record['sar_variant']}" if record["sar_variant"] >= 0 else ""))
+            files["overlay"] = out / "overlay.png"
+            save_rgb(files["overlay"], render_overlay(mesh, R, t, K, rgb, box, caption))
+            # the picture of the points: the candidate's object points, as scene_features lifts them
+            depth = plan.bop().load_depth(SCENE_ID, IM_ID)
+            mask = plan_prior_mask(plan, frame)
+            kept_pixels = candidate_points(depth, K, mask, diameter)[1]
+            feats = load_arrays(artifacts["scene_features"] / "features.zarr", ["pixels", "n_points"])
+            files["points"] = out / "points.png"
+            save_rgb(files["points"], points_picture(rgb, kept_pixels, feats["pixels"][0, :int(feats["n_points"][0])], box))
+            for stage, folder in artifacts.items():
+                copy = out / stage
+                shutil.rmtree(copy, ignore_errors=True)
+                shutil.copytree(folder, copy)
+                files[stage] = copy
+            files["bop"], files["bop_manifest"], files["bop_prior"] = frame.root, frame.manifest, frame.prior
+    record["timings_s"] = {k: round(v, 3) for k, v in steps.timings.items()}
+    record = jsonable(record)
+    if out is not None:
+        files["pose"] = out / "pose.json"
+        atomic_write_text(files["pose"], dumps(record))
+    return EstimateResult(R=R, t=t, evidence=float(record["evidence"]), record=record, out_dir=out, files=files,
+                          model_cache_reused=model_cache_reused, timings=dict(steps.timings), artifacts=artifacts)
+
+
+def plan_prior_mask(plan, frame) -> np.ndarray:
+    """(H, W) bool: the mask of the frame's prior, as segment_prior stored it."""
+    from pipeline.bop.detections import rle_decode
+    from pipeline.store import read_table
+
+    c = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet").iloc[0]
+    return rle_decode({"counts": list(c.rle_counts), "size": [int(c.height), int(c.width)]})
+
+
+def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
     """Add ``freeze estimate`` to ``app`` (``show_app`` is unused)."""
 
     @app.command("estimate")
@@ -39,25 +295,25 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
     ) -> None:
         """Estimate the 6D pose of one object in one RGB-D image.
 
-        Writes OUT/pose.json (R, t in mm, score and the intermediate numbers),
-        OUT/overlay.png (the model at the estimated pose over the image),
-        OUT/points.png (the depth points used) and the artifacts OUT/model_features,
-        scene_features, register, refine (the stages' files). The model side is cached
-        under <cache>/_estimate/ and reused for the same model and parameters.
-
-        The frame is also written as a one-image BOP dataset, OUT/bop/NAME (camera,
-        model in mm, models_info, targets, rgb, depth), with its prior
+        The frame is written as a one-image BOP dataset, OUT/bop/NAME (camera, model in
+        mm, models_info, targets, rgb, depth), with its prior
         OUT/bop/detections/estimate_NAME-test.json (the --mask, or the pixels of the
-        depth points kept inside the --bbox): read it with pipeline.bop.BopDataset, or
-        run the pipeline on it with bop_root=OUT/bop. It has no ground truth, so it is
-        not scored. A dataset of the same NAME already in OUT/bop is replaced.
+        depth points kept inside the --bbox) and its dataset manifest OUT/bop/NAME.yaml,
+        and the pipeline's stages run on it. The model side is cached (under
+        <cache>/_estimate/NAME/) and reused for every frame of the same model and
+        parameters.
+
+        Writes OUT/pose.json (R, t in mm, the evidence and the numbers behind it),
+        OUT/overlay.png (the model at the estimated pose over the image), OUT/points.png
+        (the depth points used) and a copy of every stage's artifact (OUT/render_templates,
+        ..., OUT/refine). The same result comes from `snakemake --cores 2 bop_all
+        --config bop_root=OUT/bop datasets=OUT/bop/NAME.yaml` (not scored: no ground truth).
         """
         from rich.console import Console
 
         from pipeline.bop.errors import BopFormatError
         from pipeline.cli_common import parse_overrides
         from pipeline.config import ManifestError
-        from pipeline.estimate import EstimateError, estimate
 
         console = Console(stderr=True)
         console.print(f"[bold]freeze estimate[/] {model.name} in {rgb.name} -> {out}")
@@ -69,17 +325,17 @@ def register(app: typer.Typer, show_app: typer.Typer) -> None:
             console.print(f"[red]error:[/] {e}")
             raise typer.Exit(1)
         r = res.record
-        console.print(f"score {r['score']:.3f} (inlier ratio {r['inlier_ratio']:.3f} x ICP fitness {r['fitness']:.3f}); "
-                      f"{r['n_inliers']} RANSAC inliers of {r['n_points']} points; SAR "
-                      + (f"variant {r['sar_variant']} of {r['sar_n_variants']}" if r["sar_variant"] >= 0 else f"not run ({r['sar_reason']})"))
+        console.print(f"evidence {r['evidence']:.3f} (inlier ratio {r['inlier_ratio']:.3f} x ICP fitness "
+                      f"{r['fitness']:.3f}); {r['n_inliers']} RANSAC inliers of {r['n_points']} points; SAR "
+                      + (f"variant {r['sar_variant']} of {r['sar_n_variants']}" if r["sar_variant"] >= 0
+                         else f"not run ({r['sar_reason']})"))
         console.print("R = " + "; ".join(" ".join(f"{v:+.4f}" for v in row) for row in res.R.tolist()))
         console.print("t = " + " ".join(f"{v:.1f}" for v in res.t.tolist()) + " mm")
-        console.print(f"model cache: {res.model.cache_dir} ({'reused' if res.model_cache_reused else 'built'})")
+        console.print(f"model side: {'reused from' if res.model_cache_reused else 'built in'} "
+                      f"{res.artifacts['model_features'].parent.parent.parent}")
         for name, path in res.files.items():
-            console.print(f"  {name:<15} {path}")
+            console.print(f"  {name:<16} {path}", soft_wrap=True, markup=False, highlight=False)
         ds = res.files["bop"]
         console.print(f"BOP dataset (1 image, no ground truth): {ds}; load it with pipeline.bop.BopDataset(\"{ds}\"), "
-                      f"or run bop_all with bop_root={ds.parent} datasets={ds.name} after adding "
-                      f"manifests/datasets/{ds.name}.yaml (name: {ds.name}, kind: bop, "
-                      f"prior: {res.files['bop_prior'].relative_to(ds.parent)})", soft_wrap=True, markup=False,
-                      highlight=False)
+                      f"or run the pipeline on it: snakemake --cores 2 bop_all --config bop_root={ds.parent} "
+                      f"datasets={res.files['bop_manifest']}", soft_wrap=True, markup=False, highlight=False)

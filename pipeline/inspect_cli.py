@@ -202,7 +202,7 @@ _STALE_NOTE = ("'Current' means: a stage signature the plan of the given run con
                "removed.")
 
 
-def register(app: typer.Typer, show_app: typer.Typer) -> None:
+def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
     """Add ``inspect``, ``ls`` and ``gc`` to ``app`` and ``features`` to ``show_app``."""
 
     @app.command("inspect")

@@ -59,3 +59,13 @@ def save_model_features(path: Path, features: Mapping[str, np.ndarray], attrs: M
     from pipeline.store import save_arrays
 
     save_arrays(path, features, chunks={name: a.shape for name, a in features.items()}, attrs=attrs)
+
+
+def read_symmetries(path: Path):
+    """The estimated :class:`~pipeline.geometry.symmetry.SymmetrySet` in a ``symmetries.json``
+    written by :func:`symmetry_record`."""
+    import json
+
+    from pipeline.geometry.symmetry import SymmetrySet
+
+    return SymmetrySet.from_dict(json.loads(Path(path).read_text())["estimated"])

@@ -13,25 +13,25 @@ from __future__ import annotations
 import json
 import os
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from pipeline import config as cfg
+from pipeline import stage_graph
+from pipeline.stage_graph import EXTERNAL, UndeclaredRead, item_kind, upstream_items
+from pipeline.bop.detections import detector_name
 from pipeline.store import MANIFEST_NAME, file_sha1, make_key, make_signature
 
-STAGES = (
-    "synth",
-    "render_templates",
-    "symmetries",
-    "model_features",
-    "segment_prior",
-    "scene_features",
-    "register",
-    "refine",
-    "score",
-)
+STAGES = tuple(stage_graph.STAGES)
+"""Stage names in graph order (declared in :mod:`pipeline.stage_graph`)."""
+
+LEGACY_KEY_SPELLING = {("refine", "select_by"): {"evidence": "score"}}
+"""Parameter values renamed after caches existed, hashed (and shown in signatures) under
+their old spelling so that the rename keeps every key: ``select_by: evidence`` was
+``select_by: score``."""
 
 
 def cache_root() -> Path:
@@ -96,6 +96,10 @@ class StagePlan:
     def manifest(self, item: str) -> Path:
         return self.dir / item / MANIFEST_NAME
 
+    @property
+    def spec(self) -> stage_graph.StageSpec:
+        return stage_graph.spec(self.stage)
+
     def publish_kwargs(self, item: str) -> dict[str, Any]:
         """Keyword arguments for :func:`pipeline.store.publish`."""
         return dict(
@@ -115,6 +119,9 @@ class DatasetPlan:
     obj_ids: list[int]
     scene_ids: list[int]
     stages: dict[str, StagePlan] = field(default_factory=dict)
+    dataset_key: str = ""
+    models_key: str = ""
+    prior_key: str = ""
 
     @property
     def name(self) -> str:
@@ -122,6 +129,24 @@ class DatasetPlan:
 
     def __getitem__(self, stage: str) -> StagePlan:
         return self.stages[stage]
+
+    def io(self, stage: str, item: str) -> "StageIO":
+        """What the job of ``stage`` for ``item`` may read, and where it publishes."""
+        return StageIO(self, stage, item)
+
+    def input_manifests(self, stage: str, item: str) -> list[Path]:
+        """The manifests of everything the job of ``stage`` for ``item`` reads (the
+        Snakemake rule's inputs), from the stage's declaration. The dataset of a
+        synthetic run is the synth artifact; a BOP dataset on disk and the prior files
+        have no manifest (their content is in the keys)."""
+        out: list[Path] = []
+        for r in self[stage].spec.reads_for(item_kind(item)):
+            if r == "dataset":
+                if "synth" in self.stages:
+                    out.append(self["synth"].manifest("dataset"))
+            elif r not in EXTERNAL:
+                out.extend(self[r].manifest(i) for i in upstream_items(r, item, self.obj_ids, self.scene_ids, stage))
+        return out
 
     @property
     def prior_paths(self) -> list[Path]:
@@ -152,6 +177,89 @@ class DatasetPlan:
             raise ValueError(f"{bop.models_info_path()}: dataset '{self.name}' has no object {obj_id} "
                            f"(objects: {', '.join(map(str, sorted(infos)))})")
         return infos[obj_id]
+
+
+class StageIO:
+    """What the job of one stage for one item may read, and where it publishes.
+
+    Stages open their inputs only through this object, which refuses what the stage's
+    declaration (:mod:`pipeline.stage_graph`) does not list, and publish through
+    :meth:`publish`, which refuses files the declaration does not list.
+    """
+
+    def __init__(self, plan: DatasetPlan, stage: str, item: str):
+        self.plan = plan
+        self.stage = stage
+        self.item = item
+        self.kind = item_kind(item)
+        self.spec = plan[stage].spec
+        if self.kind not in self.spec.items:
+            raise ValueError(f"{stage} items are {' or '.join(self.spec.items)} items, not '{item}'")
+
+    @property
+    def out(self) -> StagePlan:
+        """This stage's plan (key, signature, folders)."""
+        return self.plan[self.stage]
+
+    @property
+    def params(self):
+        """This stage's parameters in the run manifest."""
+        return getattr(self.plan.run.stages, self.stage)
+
+    def item_id(self) -> int:
+        """The object or scene id of this job's item."""
+        return item_id(self.item, self.kind, self.stage)
+
+    def _check(self, what: str) -> None:
+        if what not in self.spec.reads_for(self.kind):
+            raise UndeclaredRead(f"stage {self.stage} ({self.kind} items) reads '{what}', which its declaration in "
+                                 f"pipeline/stage_graph.py does not list (it reads: {', '.join(self.spec.reads_for(self.kind))})")
+
+    def input_dir(self, stage: str, item: str | None = None) -> Path:
+        """The folder of ``stage``'s artifact for ``item`` (default: the one item this job reads of it)."""
+        self._check(stage)
+        allowed = upstream_items(stage, self.item, self.plan.obj_ids, self.plan.scene_ids, self.stage)
+        if item is None:
+            if len(allowed) != 1:
+                raise ValueError(f"stage {self.stage}: name which item of {stage} to read (it reads {len(allowed)})")
+            item = allowed[0]
+        elif item not in allowed:
+            raise UndeclaredRead(f"stage {self.stage} for {self.item} reads {stage} items {allowed[:3]}..., not {item}")
+        return self.plan[stage].item_dir(item)
+
+    def bop(self):
+        """The dataset reader (:class:`pipeline.bop.BopDataset`); the stage must read ``dataset``."""
+        self._check("dataset")
+        return self.plan.bop()
+
+    @property
+    def prior_paths(self) -> list[Path]:
+        self._check("prior")
+        return self.plan.prior_paths
+
+    def seed(self, name: str, seed: int = 0) -> int:
+        """A seed derived from this stage's key and ``name`` (see :func:`pipeline.store.item_seed`)."""
+        from pipeline.store import item_seed
+
+        return item_seed(self.out.key, name, seed)
+
+    def allowed_files(self) -> set[str]:
+        return {w.replace("{results_csv}", self.plan.results_csv_name).replace("{dataset}", self.plan.name)
+                for w in self.spec.writes_for(self.kind)}
+
+    @contextmanager
+    def publish(self) -> Iterator[Any]:
+        """:func:`pipeline.store.publish` of this item; fails, publishing nothing, when the
+        stage wrote a file its declaration does not list."""
+        from pipeline.store import publish
+
+        with publish(self.out.item_dir(self.item), **self.out.publish_kwargs(self.item)) as w:
+            yield w
+            extra = sorted(p.name for p in w.dir.iterdir() if p.name != MANIFEST_NAME)
+            extra = [n for n in extra if n not in self.allowed_files()]
+            if extra:
+                raise RuntimeError(f"stage {self.stage} wrote {extra}, which its declaration in "
+                                   "pipeline/stage_graph.py does not list")
 
 
 def _encoder_manifest(name: str, kind: str) -> cfg.EncoderManifest:
@@ -191,12 +299,6 @@ def open_bop(root: Path, ds: cfg.DatasetManifest):
     return BopDataset(root, split=ds.split, split_type=ds.split_type, models_dir=ds.models, camera_file=ds.camera_file)
 
 
-def detector_name(prior_file: Path) -> str:
-    """The detector of a prior file: the part of its name before the first '_' (BOP's
-    ``<method>_<dataset>-<split>...json``)."""
-    return Path(prior_file).stem.split("_")[0]
-
-
 def prior_label(paths: list[Path]) -> str:
     """Readable name of the prior files for a signature: their detector names, reduced to
     the characters signatures allow, joined by '+'."""
@@ -217,6 +319,14 @@ def _grey(ds: cfg.DatasetManifest) -> dict[str, str]:
     return {"image_mode": "gray"} if ds.image_mode == "gray" else {}
 
 
+def _look_at(ds: cfg.DatasetManifest) -> dict[str, str]:
+    """render_templates looks at each model's bounding-box centre. The synthetic objects
+    are centred on it by construction (tests/test_synth.py checks it), so their
+    templates are those made before this rule, under the same key; on a BOP dataset a
+    model off its origin gets other templates, hence the parameter in its key."""
+    return {"look_at": "bbox_centre"} if ds.kind == "bop" else {}
+
+
 def _prior_params(patterns: list[str], p: cfg.SegmentPriorParams) -> dict[str, Any]:
     """segment_prior's keyed parameters: the prior pattern(s), the selection, and the
     merge threshold and category-id mode only where they act."""
@@ -229,14 +339,34 @@ def _prior_params(patterns: list[str], p: cfg.SegmentPriorParams) -> dict[str, A
     return out
 
 
-def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str, bool]:
-    """(target objects, target scenes, dataset fingerprint, whether every target scene has
-    ground truth) of a BOP dataset on disk."""
+def _legacy_spelling(stage: str, params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` with renamed values put back in the spelling keys were made with
+    (:data:`LEGACY_KEY_SPELLING`)."""
+    out = dict(params)
+    for (s, field_name), table in LEGACY_KEY_SPELLING.items():
+        if s == stage and field_name in out:
+            out[field_name] = table.get(out[field_name], out[field_name])
+    return out
+
+
+def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str, str, bool]:
+    """(target objects, target scenes, dataset key, models key, whether every target
+    scene has ground truth) of a BOP dataset on disk.
+
+    With ``fingerprint: layout`` (the core datasets) both keys are
+    :meth:`pipeline.bop.BopDataset.fingerprint` (names and sizes; image contents are not
+    read). With ``fingerprint: content`` (small datasets, such as the one-image dataset
+    ``freeze estimate`` writes) the dataset key hashes every file's bytes and the models
+    key only those the model side reads, so the model side is reused for new images."""
     bop = open_bop(root, ds)
     targets = bop.targets(root / ds.targets_file)
     obj_ids = sorted({t.obj_id for t in targets})
     scene_ids = sorted({t.scene_id for t in targets})
-    return obj_ids, scene_ids, bop.fingerprint(), not missing_ground_truth(bop, scene_ids)
+    if ds.fingerprint == "content":
+        dataset_key, models_key = bop.content_fingerprints()
+    else:
+        dataset_key = models_key = bop.fingerprint()
+    return obj_ids, scene_ids, dataset_key, models_key, not missing_ground_truth(bop, scene_ids)
 
 
 class RunPlan:
@@ -254,21 +384,45 @@ class RunPlan:
             "visual": _encoder_entry(self.run.visual_encoder, "visual", self.run.weights_dir),
         }
 
+    @cached_property
+    def _path_manifests(self) -> dict[str, cfg.DatasetManifest]:
+        """The run's datasets given as manifest paths, by name."""
+        out = {}
+        for entry in self.run.datasets:
+            if cfg.is_manifest_path(entry):
+                man = cfg.load_dataset_manifest(entry)
+                out[man.name] = man
+        return out
+
+    @property
+    def dataset_names(self) -> list[str]:
+        """The run's dataset names (entries given as manifest paths are named by their manifest)."""
+        return [self.manifest(e).name for e in self.run.datasets]
+
+    def manifest(self, name: str) -> cfg.DatasetManifest:
+        """The manifest of dataset ``name``: a manifest path of the run, or
+        ``manifests/datasets/<name>.yaml``."""
+        if cfg.is_manifest_path(name):
+            return cfg.load_dataset_manifest(name)
+        if name in self._path_manifests:
+            return self._path_manifests[name]
+        return cfg.load_dataset_manifest(name)
+
     def available(self, name: str) -> tuple[bool, str]:
         """Whether a dataset can run here, and why not."""
-        ds = cfg.load_dataset_manifest(name)
+        ds = self.manifest(name)
         if ds.kind == "synthetic":
             return True, ""
         if not self.run.bop_root:
-            return False, f"{name}: skipped, no bop_root set (--config bop_root=/path/to/bop, or $BOP_ROOT)"
+            return False, f"{ds.name}: skipped, no bop_root set (--config bop_root=/path/to/bop, or $BOP_ROOT)"
         root = Path(self.run.bop_root) / (ds.folder or ds.name)
         if not (root / ds.targets_file).exists():
-            return False, f"{name}: skipped, {root / ds.targets_file} not found"
+            return False, f"{ds.name}: skipped, {root / ds.targets_file} not found"
         return True, ""
 
     def notes(self, name: str) -> list[str]:
         """Things a user should know before running dataset ``name`` with this run."""
-        ds = cfg.load_dataset_manifest(name)
+        ds = self.manifest(name)
         out = []
         vis = self.encoders["visual"]
         if ds.image_mode == "gray" and vis["encoder"] == "colortex" and not vis["params"].get("intensity_weight"):
@@ -280,20 +434,27 @@ class RunPlan:
         return out
 
     def __getitem__(self, name: str) -> DatasetPlan:
+        if cfg.is_manifest_path(name):
+            name = self.manifest(name).name
         if name not in self._plans:
             self._plans[name] = self._plan_dataset(name)
         return self._plans[name]
 
-    def _stage(self, ds: str, stage: str, readable: str, params: dict, upstream: dict[str, str]) -> StagePlan:
-        from stages import code_version
-
-        version = code_version(stage)
-        key = make_key(stage, version, params, upstream)
+    def _stage(self, ds: str, stage: str, readable: str, params: dict, keys: dict[str, str]) -> StagePlan:
+        """The plan of ``stage``: its key hashes its code version, ``params`` and the keys of
+        the upstreams its declaration is keyed by (looked up in ``keys``: stage keys so far,
+        ``dataset``, ``models`` and ``prior``)."""
+        spec = stage_graph.spec(stage)
+        upstream = {}
+        for u in spec.keyed_by:
+            # a model-side stage's "dataset" is the models' own fingerprint (see DatasetPlan.models_key)
+            upstream[u] = keys["models"] if (u == "dataset" and spec.side == "model") else keys[u]
+        key = make_key(stage, spec.code_version, params, upstream)
         sig = make_signature(readable, key)
-        return StagePlan(ds, stage, key, sig, params, upstream, version, self.cache / ds / stage / sig)
+        return StagePlan(ds, stage, key, sig, params, upstream, spec.code_version, self.cache / ds / stage / sig)
 
     def _plan_dataset(self, name: str) -> DatasetPlan:
-        ds = cfg.load_dataset_manifest(name)
+        ds = self.manifest(name)
         run = self.run
         sp = run.stages
         stages: dict[str, StagePlan] = {}
@@ -303,13 +464,12 @@ class RunPlan:
             stages["synth"] = synth
             root = synth.item_dir("dataset") / name
             obj_ids, scene_ids = _synthetic_layout(ds)
-            dataset_key = synth.key
-            prior_key = synth.key
+            dataset_key = models_key = prior_key = synth.key
         else:
             if not run.bop_root:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
-            obj_ids, scene_ids, dataset_key, has_gt = _bop_layout(root, ds)
+            obj_ids, scene_ids, dataset_key, models_key, has_gt = _bop_layout(root, ds)
             if not has_gt:  # score cannot compute AR; ground truth added later must rescore
                 score_extra = {"ground_truth": False}
             prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]
@@ -317,6 +477,12 @@ class RunPlan:
                 if not prior_file.exists():
                     raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
             prior_key = "+".join(file_sha1(f) for f in prior_files)
+        keys = {"dataset": dataset_key, "models": models_key, "prior": prior_key}
+
+        def add(stage: str, readable: str, params: dict) -> None:
+            stages[stage] = self._stage(name, stage, readable, params, keys)
+            keys[stage] = stages[stage].key
+
         ds_params = {"dataset": name, "split": ds.split, "split_type": ds.split_type}
         enc = self.encoders
         geo, vis = enc["geometric"], enc["visual"]
@@ -325,39 +491,23 @@ class RunPlan:
         enc_name = f"{geo['signature']}+{vis['signature']}"
 
         rt = sp.render_templates
-        stages["render_templates"] = self._stage(
-            name, "render_templates", f"r{rt.n_views}-s{rt.image_size}",
-            {**ds_params, **rt.model_dump(), **_grey(ds)}, {"dataset": dataset_key})
+        add("render_templates", f"r{rt.n_views}-s{rt.image_size}",
+            {**ds_params, **rt.model_dump(), **_grey(ds), **_look_at(ds)})
         sym = sp.symmetries
-        stages["symmetries"] = self._stage(
-            name, "symmetries", f"so3-n{sym.n_points}",
-            {**ds_params, **sym.model_dump()}, {"dataset": dataset_key})
-        stages["model_features"] = self._stage(
-            name, "model_features", enc_name,
-            {**sp.model_features.model_dump(), "encoders": enc_params},
-            {"render_templates": stages["render_templates"].key})
-        stages["segment_prior"] = self._stage(
-            name, "segment_prior", f"{prior_label([Path(p) for p in ds.prior_patterns(run.priors)])}-top{sp.segment_prior.top_k}",
-            {**ds_params, **_prior_params(ds.prior_patterns(run.priors), sp.segment_prior),
-             "targets_file": ds.targets_file},
-            {"dataset": dataset_key, "prior": prior_key})
-        stages["scene_features"] = self._stage(
-            name, "scene_features", enc_name,
-            {**sp.scene_features.model_dump(), "encoders": enc_params},
-            {"segment_prior": stages["segment_prior"].key, "dataset": dataset_key})
-        stages["register"] = self._stage(
-            name, "register", f"{enc_name}-ransac", sp.register.model_dump(),
-            {"model_features": stages["model_features"].key, "scene_features": stages["scene_features"].key})
-        rf = sp.refine
-        refine_name = "+".join(["icp" if rf.icp else "coarse"] + (["sar"] if rf.sar else [])) + f"-by{rf.select_by}"
-        stages["refine"] = self._stage(
-            name, "refine", refine_name, {"method": run.method, **rf.model_dump(), **_grey(ds)},
-            {"register": stages["register"].key, "symmetries": stages["symmetries"].key})
-        stages["score"] = self._stage(
-            name, "score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump(),
-                                     **score_extra},
-            {"refine": stages["refine"].key, "dataset": dataset_key})
-        return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_ids=scene_ids, stages=stages)
+        add("symmetries", f"so3-n{sym.n_points}", {**ds_params, **sym.model_dump()})
+        add("model_features", enc_name, {**sp.model_features.model_dump(), "encoders": enc_params})
+        patterns = ds.prior_patterns(run.priors)
+        add("segment_prior", f"{prior_label([Path(p) for p in patterns])}-top{sp.segment_prior.top_k}",
+            {**ds_params, **_prior_params(patterns, sp.segment_prior), "targets_file": ds.targets_file})
+        add("scene_features", enc_name, {**sp.scene_features.model_dump(), "encoders": enc_params})
+        add("register", f"{enc_name}-ransac", sp.register.model_dump())
+        rf = _legacy_spelling("refine", sp.refine.model_dump())
+        refine_name = "+".join(["icp" if rf["icp"] else "coarse"] + (["sar"] if rf["sar"] else [])) + f"-by{rf['select_by']}"
+        add("refine", refine_name, {"method": run.method, **rf, **_grey(ds)})
+        add("score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump(),
+                               **score_extra})
+        return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_ids=scene_ids, stages=stages,
+                           dataset_key=dataset_key, models_key=models_key, prior_key=prior_key)
 
     def to_json(self) -> str:
         """The resolved run manifest as JSON (passed to stage jobs)."""

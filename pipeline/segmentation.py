@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -88,4 +89,44 @@ def select_candidates(
         "dropped": dict(dropped),
         "targets_without_candidate": [list(k) for k in missing],
     }
+    return table, report
+
+
+def candidates_from_priors(paths: Sequence[Path], targets: Sequence[Any], obj_ids: Sequence[int], params) -> tuple[
+        pd.DataFrame, dict[str, Any]]:
+    """The candidate table of a dataset from its prior file(s) (stage segment_prior).
+
+    paths: BOP/CNOS detection files; targets: the dataset's targets; obj_ids: the
+    object ids on disk (for index-style category ids); params: the run's
+    :class:`pipeline.config.SegmentPriorParams`. Each file's category ids are mapped to
+    obj_ids (``params.category_ids``; a file whose ids are not obj_ids fails, naming
+    it), several files are merged (:func:`pipeline.bop.detections.merge_detections`,
+    ``params.merge_iou``), and the ``top_k * inst_count`` most confident candidates of
+    each target are kept (:func:`select_candidates`). Returns the table and the report
+    (with ``prior_files`` and, for several files, ``merge``).
+    """
+    from pipeline.bop.detections import (category_id_problem, detector_name, load_detections, map_category_ids,
+                                         merge_detections)
+    from pipeline.bop.errors import BopFormatError
+
+    sources = []
+    for path in paths:
+        name = detector_name(path)
+        if any(name == n for n, _ in sources):
+            name = str(path)  # two files of one detector: their paths tell them apart
+        dets = map_category_ids(load_detections(path, source=name), obj_ids, params.category_ids, path=path)
+        if params.category_ids == "obj_id":
+            problem = category_id_problem(dets, obj_ids)
+            if problem:
+                raise BopFormatError(f"{path}: {problem}")
+        sources.append((name, dets))
+    if len(sources) == 1:
+        detections, merge_report = sources[0][1], None
+    else:
+        detections, merge_report = merge_detections(sources, iou_threshold=params.merge_iou)
+    table, report = select_candidates(detections, targets, top_k=params.top_k, min_score=params.min_score,
+                                      min_area=params.min_area, source=", ".join(str(p) for p in paths))
+    report["prior_files"] = [str(p) for p in paths]
+    if merge_report is not None:
+        report["merge"] = merge_report
     return table, report

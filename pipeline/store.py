@@ -115,12 +115,61 @@ def read_manifest(path: Path) -> dict[str, Any]:
         return json.load(f)
 
 
+# ------------------------------------------------------------------- atomic writes
+# Every file or folder the project publishes goes through these two context managers:
+# the content is written under a temporary sibling name and renamed into place, so a
+# reader never sees half of it and a killed writer leaves the previous version.
+
+
+@contextmanager
+def atomic_path(path: Path | str) -> Iterator[Path]:
+    """A temporary sibling path to write the file ``path`` into; renamed onto ``path``
+    when the block ends normally, removed when it raises."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        elif tmp.exists():
+            tmp.unlink()
+
+
+@contextmanager
+def atomic_dir(final_dir: Path | str, prefix: str = ".tmp-") -> Iterator[Path]:
+    """A temporary sibling folder to fill; it replaces ``final_dir`` (an older copy is
+    moved aside first and deleted after) when the block ends normally, and is deleted
+    when it raises, leaving ``final_dir`` as it was."""
+    final_dir = Path(final_dir)
+    final_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final_dir.parent / f"{prefix}{final_dir.name}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        yield tmp
+        old = None
+        if final_dir.exists() or final_dir.is_symlink():
+            old = final_dir.parent / f".old-{final_dir.name}-{uuid.uuid4().hex[:8]}"
+            os.replace(final_dir, old)
+        os.replace(tmp, final_dir)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def atomic_write_text(path: Path | str, text: str) -> None:
+    """Write ``text`` (UTF-8, ``\\n`` line ends) to ``path`` atomically (:func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+
+
 def _write_json_atomic(path: Path, content: Any) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(_plain(content), f, indent=2, sort_keys=True)
-        f.write("\n")
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(_plain(content), indent=2, sort_keys=True) + "\n")
 
 
 @dataclass
@@ -163,10 +212,6 @@ def publish(
     only after the new one is in place). On an exception the temporary directory is
     deleted and ``final_dir`` is left as it was.
     """
-    final_dir = Path(final_dir)
-    final_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final_dir.parent / f".tmp-{final_dir.name}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
     t0 = JOB_START if JOB_START is not None else time.perf_counter()
     manifest: dict[str, Any] = {
         "schema": MANIFEST_SCHEMA,
@@ -179,8 +224,8 @@ def publish(
         "params": _plain(dict(params)),
         "upstream": dict(upstream),
     }
-    writer = ArtifactWriter(final_dir=final_dir, dir=tmp, manifest=manifest)
-    try:
+    with atomic_dir(final_dir) as tmp:
+        writer = ArtifactWriter(final_dir=Path(final_dir), dir=tmp, manifest=manifest)
         yield writer
         manifest["summary"] = _plain(writer.summary)
         manifest["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
@@ -190,16 +235,6 @@ def publish(
         manifest["argv"] = sys.argv
         manifest["libraries"] = library_versions()
         _write_json_atomic(tmp / MANIFEST_NAME, manifest)
-        old = None
-        if final_dir.exists():
-            old = final_dir.parent / f".old-{final_dir.name}-{uuid.uuid4().hex[:8]}"
-            os.replace(final_dir, old)
-        os.replace(tmp, final_dir)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 # ----------------------------------------------------------------------------- zarr

@@ -1,10 +1,11 @@
-"""Pipeline stages: one module per stage, each with ``CODE_VERSION`` and ``run(plan, item)``.
+"""Pipeline stages: one module per stage with one entry point, ``run(plan, item)``.
 
-A stage module reads its upstream artifacts, calls library functions from
-``pipeline``, and publishes its own artifact. It holds no algorithm of its own. Modules
-import their heavy dependencies inside ``run`` so that the Snakefile can read
-``CODE_VERSION`` cheaply at DAG time. Bump ``CODE_VERSION`` whenever a change alters a
-stage's output: it is part of the cache key.
+A stage module reads its upstream artifacts (through ``plan.io(stage, item)``, which
+refuses what the stage's declaration does not list), calls one library function that
+holds the algorithm, and publishes its own artifact. Its declaration (code version,
+items, reads, writes, and where its algorithm lives) is in
+:mod:`pipeline.stage_graph`; bump the code version there whenever a change alters the
+stage's output. Modules import their heavy dependencies inside ``run``.
 """
 
 from __future__ import annotations
@@ -12,24 +13,16 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-STAGE_MODULES = {
-    "synth": "stages.synth",
-    "render_templates": "stages.render_templates",
-    "symmetries": "stages.symmetries",
-    "model_features": "stages.model_features",
-    "segment_prior": "stages.segment_prior",
-    "scene_features": "stages.scene_features",
-    "register": "stages.register",
-    "refine": "stages.refine",
-    "score": "stages.score",
-}
+from pipeline.stage_graph import STAGES
 
 
 def stage_module(stage: str) -> ModuleType:
-    if stage not in STAGE_MODULES:
-        raise KeyError(f"unknown stage '{stage}' (known: {', '.join(STAGE_MODULES)})")
-    return importlib.import_module(STAGE_MODULES[stage])
+    if stage not in STAGES:
+        raise KeyError(f"unknown stage '{stage}' (known: {', '.join(STAGES)})")
+    return importlib.import_module(STAGES[stage].module)
 
 
-def code_version(stage: str) -> int:
-    return int(stage_module(stage).CODE_VERSION)
+def run_stage(plan, stage: str, item: str, progress: bool = True) -> None:
+    """Run ``stage`` for ``item`` of the dataset plan ``plan`` (what ``freeze stage`` and
+    every Snakemake job call)."""
+    stage_module(stage).run(plan, item, progress=progress)

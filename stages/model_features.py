@@ -4,33 +4,29 @@ Arrays: points (N, 3) float32 mm and normals (N, 3) in the model frame; geometri
 (N, G) float32 (multi-scale, concatenated); visual (N, C) float32 (template features
 lifted onto the points and averaged over the views that see them); view_count (N,)
 int32 (how many templates saw each point; 0 means the feature was copied from the
-nearest seen point).
+nearest seen point). Algorithm: :func:`pipeline.model_side.model_features`.
 """
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan, build_encoders, item_id
-from pipeline.store import item_seed, load_arrays, publish
-
-CODE_VERSION = 1
+from pipeline.plan import DatasetPlan, build_encoders
+from pipeline.store import load_arrays
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.model_side import model_features, save_model_features
 
-    obj_id = item_id(item, "obj", "model_features")
-    sp = plan["model_features"]
-    p = plan.run.stages.model_features
-    bop = plan.bop()
+    io = plan.io("model_features", item)
+    obj_id, p = io.item_id(), io.params
+    bop = io.bop()
     diameter = plan.model_info(bop, obj_id).diameter
-    tpl = load_arrays(plan["render_templates"].item_dir(item) / "templates.zarr")
+    tpl = load_arrays(io.input_dir("render_templates") / "templates.zarr")
     geo_enc, vis_enc = build_encoders(plan.run)
     f = model_features(bop.load_model(obj_id), tpl, geo_enc, vis_enc, diameter, n_points=p.n_points,
-                       seed=item_seed(sp.key, item, p.seed), batch_size=p.batch_size)
-
-    with publish(sp.item_dir(item), **sp.publish_kwargs(item)) as w:
+                       seed=io.seed(item, p.seed), batch_size=p.batch_size)
+    with io.publish() as w:
         save_model_features(w.dir / "features.zarr", f,
-                            {"key": sp.key, "obj_id": obj_id, "diameter": diameter,
+                            {"key": io.out.key, "obj_id": obj_id, "diameter": diameter,
                              "geometric_encoder": geo_enc.signature(), "visual_encoder": vis_enc.signature()})
         w.summary.update({
             "obj_id": obj_id, "n_points": int(len(f["points"])), "geometric_dim": int(f["geometric"].shape[1]),

@@ -1,7 +1,7 @@
 rule model_features:
     """Geometric and lifted visual features of one object's sampled points."""
     input:
-        lambda wc: str(PLAN[wc.ds]["render_templates"].manifest(f"obj_{wc.obj}")),
+        stage_inputs("model_features", "obj"),
     output:
         f"{CACHE}/{{ds}}/model_features/{{sig}}/obj_{{obj}}/_manifest.json",
     params:

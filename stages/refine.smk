@@ -1,8 +1,7 @@
 rule refine:
     """ICP refinement of the selected poses of one scene."""
     input:
-        register=lambda wc: str(PLAN[wc.ds]["register"].manifest(f"scene_{wc.scene}")),
-        symmetries=lambda wc: [str(PLAN[wc.ds]["symmetries"].manifest(obj_item(o))) for o in PLAN[wc.ds].obj_ids],
+        stage_inputs("refine", "scene"),
     output:
         f"{CACHE}/{{ds}}/refine/{{sig}}/scene_{{scene}}/_manifest.json",
     params:
@@ -17,7 +16,7 @@ rule refine:
 rule refine_collect:
     """The BOP results CSV of the dataset, from every scene's refined poses."""
     input:
-        lambda wc: [str(PLAN[wc.ds]["refine"].manifest(scene_item(s))) for s in PLAN[wc.ds].scene_ids],
+        stage_inputs("refine", "all"),
     output:
         f"{CACHE}/{{ds}}/refine/{{sig}}/all/_manifest.json",
     params:

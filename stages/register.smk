@@ -1,8 +1,7 @@
 rule register:
     """RANSAC on fused-feature matches for every candidate of one scene."""
     input:
-        models=lambda wc: [str(PLAN[wc.ds]["model_features"].manifest(obj_item(o))) for o in PLAN[wc.ds].obj_ids],
-        scene=lambda wc: str(PLAN[wc.ds]["scene_features"].manifest(f"scene_{wc.scene}")),
+        stage_inputs("register", "scene"),
     output:
         f"{CACHE}/{{ds}}/register/{{sig}}/scene_{{scene}}/_manifest.json",
     params:

@@ -1,7 +1,7 @@
 rule render_templates:
     """R template views of one object."""
     input:
-        dataset_input,
+        stage_inputs("render_templates", "obj"),
     output:
         f"{CACHE}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}/_manifest.json",
     params:

@@ -1,8 +1,7 @@
 rule scene_features:
     """Lifted points and features of every candidate of one scene."""
     input:
-        dataset_input,
-        lambda wc: str(PLAN[wc.ds]["segment_prior"].manifest("all")),
+        stage_inputs("scene_features", "scene"),
     output:
         f"{CACHE}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}/_manifest.json",
     params:

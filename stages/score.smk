@@ -1,7 +1,7 @@
 rule score:
     """BOP19 VSD, MSSD, MSPD and AR of the dataset's results CSV."""
     input:
-        lambda wc: str(PLAN[wc.ds]["refine"].manifest("all")),
+        stage_inputs("score", "all"),
     output:
         f"{CACHE}/{{ds}}/score/{{sig}}/all/_manifest.json",
     params:

@@ -1,7 +1,7 @@
 rule segment_prior:
     """Candidate masks from the localisation prior (top-k per image and object)."""
     input:
-        dataset_input,
+        stage_inputs("segment_prior", "all"),
     output:
         f"{CACHE}/{{ds}}/segment_prior/{{sig}}/all/_manifest.json",
     params:

@@ -1,7 +1,7 @@
 rule symmetries:
     """Geometric symmetries of one object, estimated from its model."""
     input:
-        dataset_input,
+        stage_inputs("symmetries", "obj"),
     output:
         f"{CACHE}/{{ds}}/symmetries/{{sig}}/obj_{{obj}}/_manifest.json",
     params:

@@ -14,16 +14,18 @@ ROOT = Path(__file__).resolve().parent.parent
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 
 
-def run_snakemake(workdir: Path, *args: str, dry: bool = False) -> str:
+def run_snakemake(workdir: Path, *args: str, dry: bool = False, datasets: str | None = "synthtiny") -> str:
     """`snakemake bop_all --config datasets=synthtiny ARGS` in ``workdir`` (its cache in
-    ``workdir/cache``); returns the output, failing the test on a non-zero exit."""
+    ``workdir/cache``); returns the output, failing the test on a non-zero exit.
+    ``datasets=None`` runs the run manifest's own datasets (the main job's synthmini)."""
     env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}
     env.update(FREEZE_CACHE=str(workdir / "cache"), PYOPENGL_PLATFORM="egl", HF_HUB_OFFLINE="1")
     cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "--cores", "2", "bop_all"]
     if dry:
         cmd.append("-n")
-    proc = subprocess.run(cmd + ["--config", "datasets=synthtiny", *args], env=env,
-                          capture_output=True, text=True, timeout=900)
+    config = ([f"datasets={datasets}"] if datasets else []) + list(args)
+    proc = subprocess.run(cmd + (["--config", *config] if config else []), env=env,
+                          capture_output=True, text=True, timeout=1800)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-4000:]
     return out
@@ -34,6 +36,13 @@ def tiny_run(tmp_path_factory) -> tuple[Path, str]:
     """(work dir, output) of the main job on `synthtiny` with the default run manifest."""
     work = tmp_path_factory.mktemp("pipeline")
     return work, run_snakemake(work)
+
+
+@pytest.fixture(scope="session")
+def main_run(tmp_path_factory) -> tuple[Path, str]:
+    """(work dir, output) of the README's main job, `snakemake --cores 2 bop_all` (synthmini)."""
+    work = tmp_path_factory.mktemp("main_job")
+    return work, run_snakemake(work, datasets=None)
 
 
 def current_dir(work: Path, stage: str, **overrides: str) -> Path:

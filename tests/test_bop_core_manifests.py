@@ -48,6 +48,7 @@ def bop_root(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_only_the_datasets_found_are_planned(bop_root):
     rp = RunPlan(cfg.load_run({"datasets": ",".join(CORE), "bop_root": str(bop_root)}))
     found = {name: rp.available(name) for name in CORE}
@@ -73,6 +74,7 @@ def test_bop_all_dry_run_over_a_bop_root(bop_root, tmp_path):
     assert "synth" not in jobs.split()
 
 
+@pytest.mark.slow
 def test_datasets_check_summarises_and_names_problems(bop_root, tmp_path):
     import json
 
@@ -124,6 +126,7 @@ def test_prior_pattern_must_match_one_file(tmp_path):
         resolve_prior(tmp_path, "d/cnos-fastsam_lmo-test*.json")
 
 
+@pytest.mark.slow
 def test_bop_root_from_the_environment(bop_root, monkeypatch):
     monkeypatch.setenv("BOP_ROOT", str(bop_root))
     run = cfg.load_run({"datasets": "lmo"})

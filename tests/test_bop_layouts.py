@@ -20,6 +20,7 @@ from pipeline.plan import RunPlan
 from pipeline.synth.layouts import FIRST_TEST_SCENE, write_layout
 
 CORE = ("lmo", "tless", "tudl", "icbin", "itodd", "hb", "ycbv")
+pytestmark = pytest.mark.slow  # every test uses `layouts`, which writes the seven layouts (~25 s)
 
 
 @pytest.fixture(scope="module")

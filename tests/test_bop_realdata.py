@@ -1,4 +1,5 @@
-"""BopDataset on the shared real/synthetic samples (skipped when /work/shared is absent).
+"""BopDataset on the shared real/synthetic samples in ../shared/realdata, read through
+tests/shared_data.py (skipped when ../shared is absent, failing when a file is missing).
 
 synthetic-tinybop/icbin was written by the BOP toolkit; hope-val-scene0000/hope is a
 real HOPE validation scene without depth and with models_eval only. See their
@@ -8,27 +9,33 @@ SOURCE.txt for what the known values below come from.
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipeline.bop import BopDataset, BopFormatError, read_estimates_json, read_results_csv, write_results_csv
 from pipeline.bop.jsonio import bop_json_text, load_json
+from shared_data import shared_dir, shared_file
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
-if not REALDATA.is_dir():
-    REALDATA = Path("/work/shared/realdata")
-TINY = REALDATA / "synthetic-tinybop" / "icbin"
-HOPE = REALDATA / "hope-val-scene0000" / "hope"
-
-needs_tiny = pytest.mark.skipif(not TINY.is_dir(), reason="shared synthetic-tinybop sample not available")
-needs_hope = pytest.mark.skipif(not HOPE.is_dir(), reason="shared HOPE sample not available")
+TINY_JSON = ("camera.json", "models/models_info.json", "test/000001/scene_gt.json", "test/000001/scene_camera.json",
+             "test/000001/scene_gt_info.json", "test_targets_bop19.json")
 
 
-@needs_tiny
-def test_tinybop_metadata():
-    ds = BopDataset(TINY)
+@pytest.fixture
+def tiny():
+    """../shared/realdata/synthetic-tinybop/icbin, with the toolkit-written files checked."""
+    return shared_dir("realdata", "synthetic-tinybop", "icbin", files=[*TINY_JSON, "test_targets_bop24.json"])
+
+
+@pytest.fixture
+def hope():
+    """../shared/realdata/hope-val-scene0000/hope (real HOPE val scene, no depth)."""
+    return shared_dir("realdata", "hope-val-scene0000", "hope",
+                      files=["models_eval/models_info.json", "val/000001/scene_gt.json", "val/000001/rgb/000000.png"])
+
+
+def test_tinybop_metadata(tiny):
+    ds = BopDataset(tiny)
     np.testing.assert_array_equal(ds.camera()["K"], [[572.4114, 0, 325.2611], [0, 573.57043, 242.04899], [0, 0, 1]])
     assert ds.obj_ids() == [1, 2] and ds.scene_ids() == [1] and ds.image_ids(1) == [0, 1, 2]
     cyl = ds.models_info()[1]
@@ -44,12 +51,11 @@ def test_tinybop_metadata():
         for p in poses:
             np.testing.assert_allclose(p.R @ p.R.T, np.eye(3), atol=1e-12)
     assert ds.scene_gt_info(1)[2][0].visib_fract == pytest.approx(0.848421052631579)
-    assert len(ds.targets()) == 6 and ds.image_targets(TINY / "test_targets_bop24.json") == [(1, 0), (1, 1), (1, 2)]
+    assert len(ds.targets()) == 6 and ds.image_targets(tiny / "test_targets_bop24.json") == [(1, 0), (1, 1), (1, 2)]
 
 
-@needs_tiny
-def test_tinybop_images_agree_with_annotations():
-    ds = BopDataset(TINY)
+def test_tinybop_images_agree_with_annotations(tiny):
+    ds = BopDataset(tiny)
     for im_id in ds.image_ids(1):
         assert ds.load_rgb(1, im_id).shape == (480, 640, 3)
         depth = ds.load_depth(1, im_id)
@@ -66,24 +72,21 @@ def test_tinybop_images_agree_with_annotations():
             assert abs(np.median(depth[visib]) - pose.t[2]) < radius
 
 
-@needs_tiny
-def test_tinybop_models_and_json_layout():
-    ds = BopDataset(TINY)
+def test_tinybop_models_and_json_layout(tiny):
+    ds = BopDataset(tiny)
     mesh = ds.load_model(2)
     assert mesh.visual.kind == "vertex"
     np.testing.assert_allclose(mesh.bounds, [[-50, -35, -25], [50, 35, 25]], atol=1e-4)
     assert len(ds.load_model(1, eval=True).vertices) == 5762
     # Files the toolkit wrote are reproduced byte for byte by our writer.
-    for rel in ("camera.json", "models/models_info.json", "test/000001/scene_gt.json",
-                "test/000001/scene_camera.json", "test/000001/scene_gt_info.json", "test_targets_bop19.json"):
-        text = (TINY / rel).read_text()
-        assert bop_json_text(load_json(TINY / rel)) == text, rel
+    for rel in TINY_JSON:
+        text = (tiny / rel).read_text()
+        assert bop_json_text(load_json(tiny / rel)) == text, rel
 
 
-@needs_tiny
-def test_tinybop_estimates_round_trip(tmp_path):
-    est = read_estimates_json(TINY.parent / "estimates" / "gt_icbin-test.json")
-    gt = BopDataset(TINY).scene_gt(1)
+def test_tinybop_estimates_round_trip(tiny, tmp_path):
+    est = read_estimates_json(shared_file("realdata", "synthetic-tinybop", "estimates", "gt_icbin-test.json"))
+    gt = BopDataset(tiny).scene_gt(1)
     for _, row in est.iterrows():
         (pose,) = [p for p in gt[row.im_id] if p.obj_id == row.obj_id]
         np.testing.assert_array_equal(row.R, pose.R)
@@ -94,9 +97,8 @@ def test_tinybop_estimates_round_trip(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(back["R"], est["R"]))
 
 
-@needs_hope
-def test_hope_val_without_depth_and_models():
-    ds = BopDataset(HOPE, split="val")
+def test_hope_val_without_depth_and_models(hope):
+    ds = BopDataset(hope, split="val")
     assert ds.obj_ids() == list(range(1, 29))
     assert ds.scene_ids() == [1] and ds.image_ids(1) == [0, 1, 2, 3, 4]
     cam = ds.scene_camera(1)[3]

@@ -15,9 +15,7 @@ from pipeline.bop import BopDataset, Target
 from pipeline.bop.detections import load_detections
 from pipeline.bop.ply import read_ply, write_ply
 from pipeline.bop.wrap import box_mask, choose_depth_scale, default_name, detections_path, wrap_frame
-
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
-SAM6D = REALDATA / "sam6d-example"
+from shared_data import shared_dir
 SAM6D_BOX = (372, 224, 68, 96)  # the watering can, as in tests/test_estimate.py
 
 H, W = 48, 64
@@ -163,23 +161,24 @@ def test_names_depth_scale_and_bad_inputs(frame, tmp_path):
 # ----------------------------------------------------------------------- real frame
 
 
-@pytest.mark.skipif(not (SAM6D / "rgb.png").exists(), reason=f"{SAM6D} not available")
 def test_real_sam6d_frame_reads_back_through_the_bop_reader(tmp_path):
-    """SAM-6D's demo frame (LINEMOD, object 5, depth in mm, no ground truth), loaded with
-    `freeze estimate`'s own loaders, wrapped with the can's box."""
+    """SAM-6D's demo frame (LINEMOD, object 5, depth in mm, no ground truth) from
+    ../shared/realdata/sam6d-example, loaded with `freeze estimate`'s own loaders,
+    wrapped with the can's box."""
     from pipeline import estimate as est
 
-    cam = est.load_camera(SAM6D / "camera.json")
-    rgb = est.load_rgb(SAM6D / "rgb.png")
-    depth = est.load_depth(SAM6D / "depth.png", cam.depth_scale)
+    sam6d = shared_dir("realdata", "sam6d-example", files=["camera.json", "rgb.png", "depth.png", "obj_000005.ply"])
+    cam = est.load_camera(sam6d / "camera.json")
+    rgb = est.load_rgb(sam6d / "rgb.png")
+    depth = est.load_depth(sam6d / "depth.png", cam.depth_scale)
     box = est.parse_bbox(",".join(map(str, SAM6D_BOX)))
-    name = default_name(SAM6D / "obj_000005.ply")
+    name = default_name(sam6d / "obj_000005.ply")
     assert name == "obj000005"
-    ds = BopDataset(wrap_frame(tmp_path, name, rgb=rgb, depth_mm=depth, K=cam.K, model_path=SAM6D / "obj_000005.ply",
+    ds = BopDataset(wrap_frame(tmp_path, name, rgb=rgb, depth_mm=depth, K=cam.K, model_path=sam6d / "obj_000005.ply",
                                bbox=box))
     c = ds.scene_camera(1)[0]
     assert (c.width, c.height) == (640, 480) and ds.load_rgb(1, 0).shape == (480, 640, 3)
-    cam_K = json.loads((SAM6D / "camera.json").read_text())["cam_K"]
+    cam_K = json.loads((sam6d / "camera.json").read_text())["cam_K"]
     assert np.array_equal(c.K, np.reshape(cam_K, (3, 3)))
     assert np.array_equal(ds.load_rgb(1, 0), rgb)
     back = ds.load_depth(1, 0)
@@ -188,8 +187,8 @@ def test_real_sam6d_frame_reads_back_through_the_bop_reader(tmp_path):
     (det,) = load_detections(detections_path(tmp_path, name))
     assert det.bbox == SAM6D_BOX
     assert np.array_equal(det.mask(), box_mask(SAM6D_BOX, (480, 640))) and det.mask().sum() == 68 * 96
-    _, diameter = est.load_model(SAM6D / "obj_000005.ply")
+    _, diameter = est.load_model(sam6d / "obj_000005.ply")
     assert ds.models_info()[1].diameter == pytest.approx(diameter, rel=1e-3)
     assert ds.models_info()[1].diameter == pytest.approx(201.4, abs=0.5)  # LM obj 5
-    assert ds.model_path(1).read_bytes() == (SAM6D / "obj_000005.ply").read_bytes()
+    assert ds.model_path(1).read_bytes() == (sam6d / "obj_000005.ply").read_bytes()
     _check_pipeline_accepts(tmp_path, name)

@@ -273,6 +273,7 @@ def test_lrf_planar_guard():
     assert abs(f[0, 0]) > 0.99  # the long direction of the patch
 
 
+@pytest.mark.slow
 def test_encoder_shape_norm_and_rigid_invariance(gedi_weights):
     import trimesh
 

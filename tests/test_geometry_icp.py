@@ -9,13 +9,13 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from pipeline.geometry.extent import point_cloud_diameter  # noqa: E402
 from pipeline.geometry.icp import refine_icp  # noqa: E402
 from pipeline.geometry.sampling import sample_surface  # noqa: E402
 from pipeline.geometry.transforms import perturb_pose, rotation_angle_deg  # noqa: E402
-from pipeline.registration.benchmark import (  # noqa: E402
+from registration_scenes import (  # noqa: E402
     SCENE_WH,
     make_object,
-    mesh_diameter,
     random_scene_pose,
     render_scene,
     scene_inputs,
@@ -27,7 +27,7 @@ def partial_views():
     from pipeline.render.renderer import Renderer
 
     mesh = make_object("rock", seed=1)
-    diameter = mesh_diameter(mesh)
+    diameter = point_cloud_diameter(mesh.vertices)
     rng = np.random.default_rng(11)
     with Renderer(*SCENE_WH) as r:
         r.add_mesh("rock", mesh)

@@ -1,8 +1,9 @@
 """MSSD/MSPD scoring of real HOPE data against the reference BOP toolkit.
 
-Reads /work/shared/realdata/hope-val-scene0000 in place (HOPE is CC BY-NC-SA 4.0, so
-it is not copied into the repository): real GT poses of HOPE validation scene 1,
-image 0, and Diff-DOPE pose estimates for it. The scene has no depth, so VSD and AR
+Reads ../shared/realdata/hope-val-scene0000 in place through tests/shared_data.py (HOPE
+is CC BY-NC-SA 4.0, so it is not copied into the repository; skipped only when ../shared
+is absent, failing when one of its files is missing): real GT poses of HOPE validation
+scene 1, image 0, and Diff-DOPE pose estimates for it. The scene has no depth, so VSD and AR
 are not computable. The toolkit (cea62d65) gives AR_MSSD 0.8222 and AR_MSPD 0.8722
 for the estimates, and 1.0 / 1.0 for the GT poses.
 """
@@ -12,7 +13,6 @@ from __future__ import annotations
 import json
 import os
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -20,21 +20,22 @@ import pytest
 
 from pipeline.bop import BopDataset, Target
 from pipeline.metrics import evaluate
+from shared_data import shared_dir, shared_file
 
-HOPE = Path("/work/shared/realdata/hope-val-scene0000")
-
-pytestmark = pytest.mark.skipif(not HOPE.is_dir(), reason=f"{HOPE} not available on this machine")
+HOPE = ("realdata", "hope-val-scene0000")  # under ../shared
+SCENE = ("scene_camera.json", "scene_gt.json", "scene_gt_info.json")
 
 
 @pytest.fixture(scope="module")
 def hope(tmp_path_factory: pytest.TempPathFactory) -> tuple[BopDataset, list[Target]]:
     """A dataset folder of symlinks to the shared files (nothing copied), split "val"."""
-    src = HOPE / "hope"
+    src = shared_dir(*HOPE, "hope", files=["models_eval/models_info.json", *(f"val/000001/{n}" for n in SCENE),
+                                           "val/000001/rgb/000000.png"])
     root = tmp_path_factory.mktemp("hope") / "hope"
     scene = root / "val" / "000001"
     scene.mkdir(parents=True)
     os.symlink(src / "models_eval", root / "models_eval")
-    for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json", "rgb"):
+    for name in (*SCENE, "rgb"):
         os.symlink(src / "val" / "000001" / name, scene / name)
     ds = BopDataset(root, "val")
     # The reference run used 15 targets for image 0: one per object, inst_count = its
@@ -62,8 +63,9 @@ def _frame(poses: list[dict]) -> pd.DataFrame:
 
 def test_diffdope_estimates_match_reference(hope) -> None:
     ds, targets = hope
-    ref = json.loads((HOPE / "reference_scores_mssd_mspd.json").read_text())["scores"]["diffdope"]
-    est = json.loads((HOPE / "hope" / "val" / "000001" / "estimates_diffdope_scene_gt_format.json").read_text())["0"]
+    ref = json.loads(shared_file(*HOPE, "reference_scores_mssd_mspd.json").read_text())["scores"]["diffdope"]
+    est_file = shared_file(*HOPE, "hope", "val", "000001", "estimates_diffdope_scene_gt_format.json")
+    est = json.loads(est_file.read_text())["0"]
     with pytest.warns(UserWarning, match="VSD not computed"):
         s = evaluate(_frame(est), ds, targets=targets, progress=False)
     assert s.summary["n_targets"] == 18 and len(targets) == 15

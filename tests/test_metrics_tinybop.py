@@ -79,6 +79,7 @@ def test_translation_gives_exact_mssd(dataset: BopDataset) -> None:
         np.testing.assert_allclose(errors["mssd"], d, rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_symmetric_variants_score_one(dataset: BopDataset) -> None:
     """Rotating the cylinder by a declared symmetry (discrete flip or continuous turn) is exact."""
     for variant in ("gt", "symflip", "symrotz"):
@@ -89,6 +90,7 @@ def test_symmetric_variants_score_one(dataset: BopDataset) -> None:
     assert flip["mssd"].max() < 1e-9 and flip["mspd"].max() < 1e-6
 
 
+@pytest.mark.slow
 def test_score_results_file_writes_outputs_and_uses_workers(tmp_path: Path, dataset: BopDataset) -> None:
     csv = tmp_path / "rx20_icbin-test.csv"
     write_results_csv(csv, _estimates("rx20"))
@@ -186,6 +188,7 @@ def test_per_visibility_breakdown(dataset: BopDataset, variant: str) -> None:
     assert all(r["AR"] is None for r in js["per_visibility"] if r["n_targets"] == 0)
 
 
+@pytest.mark.slow
 def test_timing_split_is_reported(tmp_path: Path) -> None:
     csv = tmp_path / "tx20_icbin-test.csv"
     write_results_csv(csv, _estimates("tx20"))

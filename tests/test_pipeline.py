@@ -29,15 +29,45 @@ def _planned_jobs(out: str) -> dict[str, int]:
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
+# AR floors, from measured values (deterministic per key since ICP runs on one thread;
+# a code change that changes keys changes every RANSAC and sampling seed, whose spread is
+# what the margins cover). Measured with four seed sets (scene_features.seed and
+# register.seed = 0, the default, 1, 2, 3):
+# - synthtiny (7 targets: one target moves AR by about 0.14): AR 0.272 (also the code before
+#   this structure), 0.707, 0.798, 0.630; the floor only catches a collapse;
+# - synthmini, the main job (30 targets): AR 0.561, 0.628, 0.596, 0.615 (earlier versions of
+#   the same method: 0.560-0.596). A floor 0.06 under the lowest catches a halving.
+SYNTHTINY_AR_FLOOR = 0.20
+MAIN_JOB_AR_FLOOR = 0.50
+
+
+def _scores(work: Path, dataset: str = "synthtiny") -> dict:
+    """The score summary of ``dataset`` in the default run's plan under ``work/cache``."""
+    from pipeline.config import load_run
+    from pipeline.plan import RunPlan
+
+    score = RunPlan(load_run({"datasets": dataset}), cache=work / "cache")[dataset]["score"]
+    return json.loads(score.manifest("all").read_text())["summary"]
+
+
+@pytest.mark.slow
+def test_main_job_recalls_at_least_its_floor(main_run):
+    """The README's main job, as a newcomer runs it, keeps its accuracy."""
+    work, out = main_run
+    summary = _scores(work, "synthmini")
+    assert summary["n_targets"] == 30 and summary["n_estimates"] > 0
+    assert summary["AR"] >= MAIN_JOB_AR_FLOOR, summary["AR"]
+    assert "synthmini" in out and "BOP19 average recall" in out
+
+
 @pytest.mark.slow
 def test_bop_all_produces_scores_and_a_bop_csv(tiny_run):
     work, out = tiny_run
     assert "BOP19 average recall" in out
-    manifests = sorted(current_dir(work, "score").glob("*/_manifest.json"))
-    assert len(manifests) == 1
-    summary = json.loads(manifests[0].read_text())["summary"]
+    summary = _scores(work)
     for key in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD"):
         assert 0.0 <= summary[key] <= 1.0
+    assert summary["AR"] >= SYNTHTINY_AR_FLOOR, summary["AR"]
     assert summary["AR"] == pytest.approx((summary["AR_VSD"] + summary["AR_MSSD"] + summary["AR_MSPD"]) / 3)
     csv = current_dir(work, "refine") / "all" / "freeze_synthtiny-test.csv"
     results = read_results_csv(csv)
@@ -121,18 +151,17 @@ def test_multi_instance_targets_get_distinct_hypotheses(tiny_run):
     """The tiny preset repeats the cup (inst_count 2). The pipeline's estimates of a
     target are distinct instances; and from clean candidates (each instance's ground
     truth mask, twice) the library chain register -> ICP -> select_estimates gives one
-    estimate on each instance and suppresses the duplicate hypotheses."""
+    estimate on each instance and suppresses the duplicate hypotheses (the scene side's
+    library functions, pipeline/scene_side.py, on candidates made here)."""
     from types import SimpleNamespace
 
     from pipeline.bop import BopDataset
-    from pipeline.geometry.depth import lift_depth, remove_outliers
+    from pipeline.config import load_run
+    from pipeline.geometry.crops import mask_to_bbox
     from pipeline.geometry.icp import refine_icp
     from pipeline.plan import build_encoders
-    from pipeline.config import load_run
-    from pipeline.registration.fusion import apply_pca, fit_pca, fuse
-    from pipeline.registration.ransac import register
-    from pipeline.registration.selection import estimate_score, select_estimates
-    from pipeline.encoders.lifting import crop_and_resize, mask_to_bbox, sample_features_at_pixels, square_crop_box
+    from pipeline.registration.selection import registration_evidence, select_estimates
+    from pipeline.scene_side import CandidateMask, coarse_pose, matchable_model, scene_features
     from pipeline.store import load_arrays, read_table
 
     work, _ = tiny_run
@@ -150,41 +179,47 @@ def test_multi_instance_targets_get_distinct_hypotheses(tiny_run):
             for b in range(a):
                 assert np.linalg.norm(ts[a] - ts[b]) > 0.25 * diameter  # never one instance twice
 
-    geo, vis = build_encoders(load_run({"datasets": "synthtiny"}))
+    run = load_run({"datasets": "synthtiny"})
+    geo, vis = build_encoders(run)
     model = load_arrays(current_dir(work, "model_features") / "obj_000006" / "features.zarr")
-    basis = fit_pca(model["visual"], 64)
-    model_fused = fuse(model["geometric"], apply_pca(basis, model["visual"]))
+    matchable = matchable_model(model, run.stages.register.pca_dim)
     im_id = 0
     K = bop.scene_camera(1)[im_id].K
     depth, rgb = bop.load_depth(1, im_id), bop.load_rgb(1, im_id)
     gts = [(gt_id, g) for gt_id, g in enumerate(bop.scene_gt(1)[im_id]) if g.obj_id == 6]
-    rows = []
+    candidates, gt_of = [], {}
     for gt_id, g in gts:
         mask = bop.load_mask(1, im_id, gt_id)
         for copy in range(2):  # the same instance proposed twice
-            pts, pix = lift_depth(depth, K, mask)
-            keep = remove_outliers(pts, diameter)
-            pts, pix = pts[keep], pix[keep]
-            sel = np.random.default_rng(copy).choice(len(pts), size=min(1000, len(pts)), replace=False)
-            pts, pix = pts[sel], pix[sel]
-            box = square_crop_box(mask_to_bbox(mask), depth.shape, 0.1)
-            fmap = vis.encode(crop_and_resize(rgb, box, vis.input_size)[None])[0]
-            scene_vis = sample_features_at_pixels(fmap, box, vis.input_size, pix.astype(np.float32))
-            scene_fused = fuse(geo.encode(pts, None, diameter, viewpoint=np.zeros(3)), apply_pca(basis, scene_vis))
-            reg = register(model["points"], model_fused, pts, scene_fused, diameter, seed=copy)
-            res = refine_icp(model["points"], model["normals"], pts, reg.R, reg.t, diameter)
-            rows.append({"cand_id": len(rows), "scene_id": 1, "im_id": im_id, "obj_id": 6, "t": res.t.tolist(),
-                         "evidence": estimate_score(reg.inlier_ratio, res.fitness), "n_inliers": reg.n_inliers,
-                         "prior_score": 1.0, "gt_id": gt_id})
+            cand_id = len(candidates)
+            gt_of[cand_id] = gt_id
+            candidates.append(CandidateMask(cand_id, 6, mask, mask_to_bbox(mask), diameter, seed=copy))
+    found = scene_features(rgb, depth, K, candidates, geo, vis, run.stages.scene_features)
+    rows = []
+    for f in found:
+        reg = coarse_pose(matchable, f.points, f.geometric, f.visual, diameter, run.stages.register,
+                          seed=candidates[f.cand_id].seed)
+        res = refine_icp(model["points"], model["normals"], f.points, reg.R, reg.t, diameter)
+        rows.append({"cand_id": f.cand_id, "scene_id": 1, "im_id": im_id, "obj_id": 6, "t": res.t.tolist(),
+                     "evidence": registration_evidence(reg.inlier_ratio, res.fitness), "n_inliers": reg.n_inliers,
+                     "prior_score": 1.0, "gt_id": gt_of[f.cand_id]})
     import pandas as pd
 
     out = select_estimates(pd.DataFrame(rows), [SimpleNamespace(scene_id=1, im_id=im_id, obj_id=6, inst_count=2)],
                            {6: diameter})
+    gt_t = dict(gts)
+    on_instance = [np.linalg.norm(np.asarray(r.t) - gt_t[r.gt_id].t) < 0.1 * diameter for r in out.itertuples()]
     kept = out[out.selected]
+    # one estimate on each instance. Measured over six seed sets: 0.052-0.065 d from the
+    # ground truth on the partly hidden cup, 0.005-0.011 d on the other, and 1 of 12
+    # registrations failed (> 0.5 d); instances are more than 0.25 d apart.
     assert len(kept) == 2 and sorted(kept.gt_id) == sorted(g for g, _ in gts)
-    assert out.note.str.startswith("duplicate of").sum() == 2
-    for r in kept.itertuples():
-        assert np.linalg.norm(np.asarray(r.t) - dict(gts)[r.gt_id].t) < 0.05 * diameter
+    assert all(ok for ok, sel in zip(on_instance, out.selected) if sel)
+    # every other hypothesis on an instance is suppressed as a duplicate of the kept one
+    for r, ok in zip(out.itertuples(), on_instance):
+        if not r.selected:
+            assert r.note.startswith("duplicate of") == ok, (r.cand_id, r.note, ok)
+    assert out.note.str.startswith("duplicate of").sum() >= 1
 
 
 @pytest.mark.slow

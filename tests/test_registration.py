@@ -12,7 +12,7 @@ from pipeline.registration.ransac import (
     build_correspondences,
     feature_neighbours,
     kabsch,
-    register,
+    ransac_align,
 )
 
 # --- fusion -----------------------------------------------------------------------
@@ -117,7 +117,7 @@ def _synthetic_problem(seed: int, inlier_share: float):
 def test_register_recovers_known_pose_with_outliers(backend):
     model, mf, scene, sf, R, t, n_good = _synthetic_problem(0, inlier_share=0.15)
     diameter = 250.0
-    reg = register(model, mf, scene, sf, diameter, params=RansacParams(backend=backend, inlier_frac=0.02), seed=1)
+    reg = ransac_align(model, mf, scene, sf, diameter, params=RansacParams(backend=backend, inlier_frac=0.02), seed=1)
     assert rotation_angle_deg(reg.R, R) < 0.5
     assert np.linalg.norm(reg.t - t) < 1.0
     # Inliers: the correct matches (plus rare lucky wrong ones).
@@ -130,8 +130,8 @@ def test_register_recovers_known_pose_with_outliers(backend):
 def test_register_numpy_backend_is_reproducible():
     model, mf, scene, sf, *_ = _synthetic_problem(1, inlier_share=0.1)
     params = RansacParams(inlier_frac=0.02, refine_iterations=0)
-    a = register(model, mf, scene, sf, 250.0, params=params, seed=7)
-    b = register(model, mf, scene, sf, 250.0, params=params, seed=7)
+    a = ransac_align(model, mf, scene, sf, 250.0, params=params, seed=7)
+    b = ransac_align(model, mf, scene, sf, 250.0, params=params, seed=7)
     np.testing.assert_array_equal(a.R, b.R)
     np.testing.assert_array_equal(a.t, b.t)
     assert a.n_inliers == b.n_inliers
@@ -142,14 +142,14 @@ def test_inlier_counts_rank_candidates():
     model, mf, scene, sf_good, R, t, _ = _synthetic_problem(2, inlier_share=0.3)
     _, _, _, sf_bad, _, _, _ = _synthetic_problem(2, inlier_share=0.08)
     params = RansacParams(inlier_frac=0.02)
-    good = register(model, mf, scene, sf_good, 250.0, params=params, seed=0)
-    bad = register(model, mf, scene, sf_bad, 250.0, params=params, seed=0)
+    good = ransac_align(model, mf, scene, sf_good, 250.0, params=params, seed=0)
+    bad = ransac_align(model, mf, scene, sf_bad, 250.0, params=params, seed=0)
     assert good.n_inliers > 2 * bad.n_inliers
 
 
 def test_register_rejects_mismatched_inputs():
     with pytest.raises(ValueError, match="features"):
-        register(np.zeros((10, 3)), np.zeros((9, 4)), np.zeros((5, 3)), np.zeros((5, 4)), 1.0)
+        ransac_align(np.zeros((10, 3)), np.zeros((9, 4)), np.zeros((5, 3)), np.zeros((5, 4)), 1.0)
     with pytest.raises(ValueError, match="extra|Extra"):
         RansacParams(threshold=3)
 
@@ -208,7 +208,7 @@ def test_select_estimates_keeps_distinct_instances_in_rank_order():
     ])
     targets = [T(scene_id=1, im_id=0, obj_id=7, inst_count=2), T(scene_id=1, im_id=0, obj_id=9, inst_count=1)]
     diam = {7: 80.0, 9: 80.0}
-    out = select_estimates(cands, targets, diam, by="score").set_index("cand_id")
+    out = select_estimates(cands, targets, diam, by="evidence").set_index("cand_id")
     assert sorted(out.index[out.selected]) == [1, 2, 5]
     assert out.loc[1, "rank"] == 0 and out.loc[2, "rank"] == 1
     assert out.loc[0, "note"] == "duplicate of 1" and out.loc[3, "note"] == "beyond inst_count"
@@ -219,7 +219,7 @@ def test_select_estimates_keeps_distinct_instances_in_rank_order():
     by_prior = select_estimates(cands, targets, diam, by="prior").set_index("cand_id")
     assert sorted(by_prior.index[by_prior.selected]) == [1, 3, 5]
     # a smaller duplicate radius keeps both hypotheses of the first instance
-    tight = select_estimates(cands, targets, diam, by="score", duplicate_frac=0.05).set_index("cand_id")
+    tight = select_estimates(cands, targets, diam, by="evidence", duplicate_frac=0.05).set_index("cand_id")
     assert sorted(tight.index[tight.selected]) == [0, 1, 5]
     # ICP fitness alone: candidate 3 fits best for object 7, candidate 4 for object 9
     by_fitness = select_estimates(cands.assign(fitness=[0.5, 0.6, 0.7, 0.9, 0.8, 0.2, 0.1]), targets, diam,

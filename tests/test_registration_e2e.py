@@ -17,23 +17,26 @@ from pipeline.encoders.lifting import (  # noqa: E402
 )
 from pipeline.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
 from pipeline.geometry.depth import lift_depth, remove_outliers  # noqa: E402
+from pipeline.geometry.extent import point_cloud_diameter  # noqa: E402
 from pipeline.geometry.icp import refine_icp  # noqa: E402
 from pipeline.geometry.sampling import sample_points, sample_surface  # noqa: E402
 from pipeline.geometry.transforms import rotation_angle_deg  # noqa: E402
-from pipeline.registration.benchmark import (  # noqa: E402
+from pipeline.registration.fusion import apply_pca, fit_pca, fuse  # noqa: E402
+from pipeline.registration.ransac import RansacParams, ransac_align  # noqa: E402
+from pipeline.render.templates import render_templates, template_views  # noqa: E402
+from registration_scenes import (  # noqa: E402
     SCENE_K,
     SCENE_WH,
     make_object,
-    mesh_diameter,
     random_scene_pose,
     render_scene,
-    render_templates,
 )
-from pipeline.registration.fusion import apply_pca, fit_pca, fuse  # noqa: E402
-from pipeline.registration.ransac import RansacParams, register  # noqa: E402
 
 N_MODEL, M_SCENE, N_TEMPLATES = 5000, 1000, 42
 
+
+
+pytestmark = pytest.mark.slow  # model sides and many renders: seconds per test
 
 @pytest.fixture(scope="module", params=["rock", "blocks"])
 def case(request):
@@ -44,11 +47,12 @@ def case(request):
     geo = build_encoder(EncoderSpec(name="fpfh"))  # defaults: radii [0.3, 0.4]
     vis = build_encoder(EncoderSpec(name="colortex"))
     mesh = make_object(kind, seed=1)
-    diameter = mesh_diameter(mesh)
+    diameter = point_cloud_diameter(mesh.vertices)
     pts, nrm = sample_surface(mesh, N_MODEL, seed=0)
     with Renderer(vis.input_size, vis.input_size) as r:
         r.add_mesh(kind, mesh)
-        templates = render_templates(r, kind, diameter, N_TEMPLATES, size=vis.input_size)
+        tpl = render_templates(r, kind, template_views(N_TEMPLATES, diameter, vis.input_size))
+    templates = list(zip(tpl["rgb"], tpl["depth"], tpl["K"], tpl["R"], tpl["t"]))
     model_visual, count = lift_model_visual_features(pts, templates, vis, diameter=diameter)
     assert (count > 0).mean() > 0.9  # 42 views see all but concave nooks and thin edges
     model = {
@@ -81,7 +85,7 @@ def test_fused_registration_recovers_pose(case):
         v_scene = lift_scene_visual_features(view.rgb, mask_to_bbox(view.mask), pix, vis)
         f_scene = fuse(g_scene, apply_pca(model["pca"], v_scene))
 
-        reg = register(model["points"], f_model, pts, f_scene, d, params=RansacParams(), seed=i)
+        reg = ransac_align(model["points"], f_model, pts, f_scene, d, params=RansacParams(), seed=i)
         icp = refine_icp(model["points"], model["normals"], pts, reg.R, reg.t, d)
 
         rot, trans = rotation_angle_deg(icp.R, view.R), float(np.linalg.norm(icp.t - view.t))

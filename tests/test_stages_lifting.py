@@ -23,6 +23,9 @@ from pipeline.plan import RunPlan, obj_item, scene_item
 from pipeline.store import load_arrays, read_table
 
 
+
+pytestmark = pytest.mark.slow  # model sides and many renders: seconds per test
+
 @pytest.fixture(scope="module")
 def plan(tmp_path_factory):
     run = cfg.load_run({"datasets": "synthtiny", "visual_encoder": "rgb"})

@@ -72,3 +72,43 @@ def test_parquet_keeps_key_in_schema_metadata(tmp_path):
     assert back.a.tolist() == [1, 2] and list(back.R[1]) == [2.0] * 9
     assert table_metadata(tmp_path / "t.parquet") == {"key": "abc"}
     assert json.loads(json.dumps(table_metadata(tmp_path / "t.parquet")))["key"] == "abc"
+
+
+def test_atomic_file_and_folder_writes_leave_the_old_version_on_failure(tmp_path):
+    from pipeline.store import atomic_dir, atomic_path, atomic_write_text
+
+    path = tmp_path / "sub" / "table.csv"
+    atomic_write_text(path, "one\n")
+    with pytest.raises(RuntimeError):
+        with atomic_path(path) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert path.read_text() == "one\n" and sorted(p.name for p in path.parent.iterdir()) == ["table.csv"]
+    with atomic_path(path) as tmp:
+        assert tmp.parent == path.parent and tmp.name.startswith(".")
+        tmp.write_text("two\n")
+    assert path.read_text() == "two\n"
+
+    folder = tmp_path / "dataset"
+    with atomic_dir(folder) as tmp:
+        (tmp / "a.txt").write_text("a")
+    with pytest.raises(RuntimeError):
+        with atomic_dir(folder) as tmp:
+            (tmp / "b.txt").write_text("b")
+            raise RuntimeError("killed")
+    assert sorted(p.name for p in folder.iterdir()) == ["a.txt"]
+    with atomic_dir(folder) as tmp:
+        (tmp / "c.txt").write_text("c")
+    assert sorted(p.name for p in folder.iterdir()) == ["c.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dataset", "sub"]  # no .tmp-/.old- leftovers
+
+
+def test_there_is_one_atomic_write_in_the_project():
+    """Every atomic write goes through pipeline.store (atomic_path / atomic_dir)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    offenders = [p.relative_to(root).as_posix() for folder in ("pipeline", "stages", "benchmarks")
+                 for p in sorted((root / folder).rglob("*.py"))
+                 if p.name != "store.py" and any(s in p.read_text() for s in ("os.replace(", "mkstemp(", ".rename(tmp"))]
+    assert offenders == []

@@ -149,6 +149,7 @@ def test_declared_symmetries_hold_on_models_eval(ds):
     assert len(info[6].symmetries_continuous) == 1 and not info[6].symmetries_discrete
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes(tiny, tmp_path):
     root = tiny[0]
     again = generate(tmp_path / "again", "tiny", "tiny", seed=3, progress=False)
@@ -212,3 +213,17 @@ def test_refuses_to_overwrite_and_cleans_up_on_failure(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"], "partial directory left behind"
     with pytest.raises(ValueError, match="_"):
         generate(tmp_path / "x", "my_set", "tiny", progress=False)
+
+
+def test_models_are_centred_on_their_bounding_box(ds):
+    """render_templates looks at each model's bounding-box centre; for the synthetic
+    objects that is exactly the origin (in the written PLY's float32 too), which is why
+    their template keys did not change when that rule came (pipeline/plan.py, _look_at)."""
+    from pipeline.render.templates import bbox_centre
+    from pipeline.synth.objects import OBJ_IDS
+
+    for obj_id in OBJ_IDS:
+        v = np.asarray(build_object(obj_id).model.vertices).astype(np.float32)
+        assert np.array_equal(0.5 * (v.min(axis=0) + v.max(axis=0)), np.zeros(3, np.float32)), obj_id
+    for obj_id in ds.obj_ids():
+        assert np.array_equal(bbox_centre(ds.load_model(obj_id)), np.zeros(3)), obj_id

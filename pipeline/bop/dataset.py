@@ -516,6 +516,28 @@ class BopDataset:
                     h.update(f"{d.name}/{p.name}:{p.stat().st_size}\0".encode())
         return h.hexdigest()[:12]
 
+    def content_fingerprints(self) -> tuple[str, str]:
+        """(dataset, models) short sha1s (12 hex) of file contents, for small datasets.
+
+        The dataset one covers the relative path and bytes of every file under the
+        root; the models one those of the model folder used for onboarding (meshes,
+        textures) and ``models_info.json``, which is all the model side reads. Reads
+        every byte: meant for datasets of a few images (``freeze estimate`` writes one)."""
+        def digest(files: Iterable[Path]) -> str:
+            h = hashlib.sha1()
+            for p in sorted(files):
+                h.update(p.relative_to(self.root).as_posix().encode() + b"\0")
+                with open(p, "rb") as f:
+                    while block := f.read(1 << 20):
+                        h.update(block)
+                h.update(b"\0")
+            return h.hexdigest()[:12]
+
+        everything = [p for p in self.root.rglob("*") if p.is_file()]
+        model_dir = self._model_dir(False, warn=False)
+        models = [p for p in everything if p.parent == model_dir or p == self.models_info_path()]
+        return digest(everything), digest(models)
+
 
 # ---------------------------------------------------------------------------- writers
 

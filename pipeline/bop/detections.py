@@ -536,3 +536,9 @@ def _merge_report(names: Sequence[str], sources: Sequence[tuple[str, Sequence[De
     n_read = len(pooled)
     return {"iou_threshold": float(iou_threshold), "n_read": n_read, "n_kept": n_read - len(dropped_by),
             "n_dropped_duplicates": len(dropped_by), "sources": per_source}
+
+
+def detector_name(prior_file: Path | str) -> str:
+    """The detector of a prior file: the part of its name before the first '_' (BOP's
+    ``<method>_<dataset>-<split>...json``)."""
+    return Path(prior_file).stem.split("_")[0]

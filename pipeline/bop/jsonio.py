@@ -12,12 +12,12 @@ BOP file reproduces it byte for byte.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from pipeline.store import atomic_write_text
 
 from .errors import BopFormatError
 
@@ -66,25 +66,6 @@ def bop_json_text(content: Any) -> str:
         lines = [f"  {_dumps(v)}" for v in content]
         return "[\n" + ",\n".join(lines) + ("\n" if lines else "") + "]"
     return _dumps(content)
-
-
-def atomic_write_text(path: Path | str, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary sibling and a rename.
-
-    A reader never sees a half-written file, and a killed writer leaves the previous
-    version (or nothing) in place.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def save_bop_json(path: Path | str, content: Any) -> None:

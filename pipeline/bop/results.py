@@ -16,7 +16,9 @@ import numpy as np
 import pandas as pd
 
 from .errors import BopFormatError
-from .jsonio import atomic_write_text, load_json
+from pipeline.store import atomic_write_text
+
+from .jsonio import load_json
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 COLUMNS = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
@@ -164,3 +166,23 @@ def read_estimates_json(path: Path | str) -> pd.DataFrame:
         )
     df = pd.DataFrame(rows, columns=COLUMNS)
     return df.astype({"scene_id": "int64", "im_id": "int64", "obj_id": "int64", "score": "float64", "time": "float64"})
+
+
+def image_times(stage_times: Iterable[pd.DataFrame], prior_time: pd.Series | None = None) -> pd.Series:
+    """BOP's time per image (s), indexed by (scene_id, im_id): the sum of the per-image
+    times of the scene-side stages (tables with scene_id, im_id, time_s), plus the
+    localisation prior's own time for the image (``prior_time``, negative = unknown = 0).
+    Model onboarding is excluded, as BOP defines it."""
+    frames = [t[["scene_id", "im_id", "time_s"]] for t in stage_times]
+    per_image = pd.concat(frames, ignore_index=True).groupby(["scene_id", "im_id"]).time_s.sum()
+    if prior_time is not None:
+        per_image = per_image.add(prior_time.clip(lower=0.0), fill_value=0.0)
+    return per_image
+
+
+def estimates_rows(poses: pd.DataFrame, per_image: pd.Series) -> list[dict[str, Any]]:
+    """Rows for :func:`write_results_csv` from estimates (scene_id, im_id, obj_id, score,
+    R as 9 floats, t mm) and the time of each image (:func:`image_times`)."""
+    return [{"scene_id": r.scene_id, "im_id": r.im_id, "obj_id": r.obj_id, "score": r.score,
+             "R": np.asarray(r.R).reshape(3, 3), "t": np.asarray(r.t), "time": float(per_image.loc[(r.scene_id, r.im_id)])}
+            for r in poses.itertuples(index=False)]

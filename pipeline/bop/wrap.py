@@ -21,10 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import re
 import shutil
-import uuid
 from pathlib import Path
 from typing import Sequence
 
@@ -44,6 +42,8 @@ from .dataset import (
     write_scene_gt,
     write_targets,
 )
+from pipeline.store import atomic_dir, atomic_path
+
 from .detections import detection_from_mask, save_detections
 from .ply import read_ply, write_ply
 
@@ -93,7 +93,7 @@ def choose_depth_scale(depth_mm: np.ndarray, preferred: float = 0.1) -> float:
 
 def box_mask(bbox: Sequence[float], shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool: the pixels of box (x, y, w, h) px, outward-rounded and clipped to the image
-    (the region :func:`pipeline.estimate.box_candidate_points` lifts)."""
+    (the region :func:`pipeline.geometry.box_points.box_candidate_points` lifts)."""
     H, W = shape
     x, y, w, h = (float(v) for v in bbox)
     m = np.zeros((H, W), bool)
@@ -184,7 +184,8 @@ def wrap_frame(
     unit in mm, made coarser (:func:`choose_depth_scale`) when the farthest depth would
     not fit uint16; the quantisation error is at most half of it. gt_R (3, 3), gt_t (3,)
     mm: a known model-to-camera pose, written to scene_gt.json. The folder and the
-    detection file are written to a temporary folder and renamed into place; an existing
+    detection file are written under temporary names and renamed into place
+    (:func:`pipeline.store.atomic_dir`, :func:`pipeline.store.atomic_path`); an existing
     dataset or detection file with other contents raises FileExistsError unless
     ``overwrite``. Returns ``<out_root>/<name>``.
     """
@@ -221,10 +222,24 @@ def wrap_frame(
 
     out_root = Path(out_root)
     dest, det_dest = out_root / name, detections_path(out_root, name, detector)
-    out_root.mkdir(parents=True, exist_ok=True)
-    tmp = out_root / f".tmp-{name}-{uuid.uuid4().hex[:8]}"
     try:
-        ds = tmp / name
+        _write_frame(dest, det_dest, rgb, depth, K, scale, model_path, model_scale, det_mask, bbox, obj_id,
+                     scene_id, im_id, gt_R, gt_t, overwrite)
+    except _Unchanged:  # the same frame is there already: keep it as it is
+        pass
+    return dest
+
+
+class _Unchanged(Exception):
+    """Raised inside the atomic writes to publish nothing: the files on disk are the same."""
+
+
+def _write_frame(dest: Path, det_dest: Path, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray,
+                 scale: float, model_path, model_scale: float, det_mask: np.ndarray, bbox, obj_id: int,
+                 scene_id: int, im_id: int, gt_R, gt_t, overwrite: bool) -> None:
+    """The writing part of :func:`wrap_frame`."""
+    H, W = rgb.shape[:2]
+    with atomic_path(det_dest) as det_tmp, atomic_dir(dest) as ds:
         info = _write_model(Path(model_path), ds / "models", obj_id, model_scale)
         write_models_info(ds / "models" / "models_info.json", {obj_id: info})
         write_camera(ds, {"K": K, "width": W, "height": H, "depth_scale": scale})
@@ -239,25 +254,10 @@ def wrap_frame(
         det = detection_from_mask(scene_id, im_id, obj_id, 1.0, det_mask)
         if bbox is not None:
             det = dataclasses.replace(det, bbox=tuple(float(v) for v in bbox))
-        save_detections(tmp / det_dest.name, [det])
-
-        new = {dest: ds, det_dest: tmp / det_dest.name}
-        differs = [p for p in new if p.exists() and not _same(p, new[p])]
-        if differs and not overwrite:
+        save_detections(det_tmp, [det])
+        differs = [p for p, new in ((dest, ds), (det_dest, det_tmp)) if p.exists() and not _same(p, new)]
+        if differs and not overwrite:  # raising here publishes nothing and leaves both as they were
             raise FileExistsError(f"{differs[0]}: holds another dataset or prior; choose another name "
                                   "(freeze estimate --bop-name) or pass overwrite=True")
-        if dest in differs or not dest.exists():  # else the same frame is there already: keep it
-            old = out_root / f".old-{name}-{uuid.uuid4().hex[:8]}"
-            if dest.exists() or dest.is_symlink():
-                dest.rename(old)
-            ds.rename(dest)
-            if old.is_dir():
-                shutil.rmtree(old)
-            elif old.exists():
-                old.unlink()
-        if det_dest in differs or not det_dest.exists():
-            det_dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(new[det_dest], det_dest)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return dest
+        if not differs and dest.exists() and det_dest.exists():
+            raise _Unchanged

@@ -22,7 +22,7 @@ weight, describing achromatic texture (printed text, dark marks) on the log inte
 ``L = log(mean(R, G, B) + e_L)``: ``s * |grad L_s|``, the two Hessian eigenvalues
 ``s^2 * (l1 >= l2)`` of ``L_s``, and the standard deviation of ``L`` in the Gaussian
 window ``s``. They are off by default. On rendered views of the textured objects of
-pipeline.registration.benchmark, shading and silhouettes, which change with the
+benchmarks/registration.py, shading and silhouettes, which change with the
 viewpoint and the light, dominate them: fused with FPFH, the share of correct top-1
 scene-to-model matches on the "rock" object fell from 0.70 to 0.54 when they were
 added with weight 0.1 (the colour Laplacian channels raised it from 0.70 to 0.73), and

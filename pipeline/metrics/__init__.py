@@ -13,7 +13,7 @@ from .evaluate import (
 )
 from .matching import greedy_match, valid_gt_mask
 from .pose_errors import mspd, mssd, project
-from .symmetry import model_symmetries, symmetry_transformations
+from .bop_symmetries import model_symmetries, symmetry_transformations
 from .vsd import VSD_TAUS, Crop, depth_to_distance, sphere_projections_overlap, vsd, vsd_crops, vsd_from_distances
 
 __all__ = [

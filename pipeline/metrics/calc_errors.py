@@ -21,7 +21,7 @@ from pipeline.bop import BopDataset, ModelInfo, load_json, read_ply
 from pipeline.bop.dataset import parse_models_info
 
 from .pose_errors import hull_indices, mspd, mssd, probe_indices
-from .symmetry import DEFAULT_MAX_SYM_DISC_STEP, model_symmetries
+from .bop_symmetries import DEFAULT_MAX_SYM_DISC_STEP, model_symmetries
 from .vsd import VSD_TAUS, Crop, sphere_projections_overlap, vsd_crops
 
 

@@ -21,8 +21,6 @@ import json
 import logging
 import math
 import multiprocessing
-import os
-import tempfile
 import time as _time
 import warnings
 from dataclasses import dataclass, field
@@ -33,11 +31,11 @@ import numpy as np
 import pandas as pd
 
 from pipeline.bop import BopDataset, Target, read_results_csv
-from pipeline.bop.jsonio import atomic_write_text
+from pipeline.store import atomic_path, atomic_write_text
 
 from .calc_errors import ErrorCalculator, ErrorParams, ImageJob, eval_models_info, init_worker, run_jobs
 from .matching import greedy_match, valid_gt_mask
-from .symmetry import DEFAULT_MAX_SYM_DISC_STEP
+from .bop_symmetries import DEFAULT_MAX_SYM_DISC_STEP
 from .vsd import VSD_TAUS
 
 log = logging.getLogger(__name__)
@@ -162,6 +160,22 @@ def mean_time_per_image(df: pd.DataFrame) -> float:
             stacklevel=3,
         )
     return float(first.mean())
+
+
+def unscored_summary(results_csv: Path, targets: Sequence[Target], why: str) -> dict[str, Any]:
+    """What ``scores.json`` says of a results file that cannot be scored here because the
+    ground truth is missing (``why``): counts, the BOP time per image, and the file to
+    submit to the BOP evaluation server."""
+    df = read_results_csv(results_csv)
+    return {
+        "status": "no_ground_truth",
+        "AR": None, "AR_VSD": None, "AR_MSSD": None, "AR_MSPD": None,
+        "n_targets": int(sum(t.inst_count for t in targets)),
+        "n_estimates": int(len(df)),
+        "mean_time_per_image": mean_time_per_image(df),
+        "results_file": str(results_csv),
+        "notes": [f"not scored: {why}; submit {results_csv} to the BOP evaluation server (bop.felk.cvut.cz)"],
+    }
 
 
 def _select_estimates(df: pd.DataFrame, inst_counts: dict[tuple[int, int, int], int]) -> tuple[pd.DataFrame, int]:
@@ -546,16 +560,8 @@ def _timing_summary(parts: dict[str, float], prepare: float, match: float, error
 
 
 def _atomic_parquet(df: pd.DataFrame, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         df.to_parquet(tmp, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _resolve_targets(dataset_root: Path, targets_file: Path | str | None) -> Path | None:

@@ -236,7 +236,7 @@ def sar_similarity(
         return np.zeros(0)
     scene = encoder.encode(scene_crop[None]).astype(np.float32)  # (1, D, h, w)
     scene_unit = _unit(scene)
-    scores = np.empty(V)
+    similarities = np.empty(V)
     for start in range(0, V, batch_size):
         stop = min(start + batch_size, V)
         feats = encoder.encode(renders[start:stop]).astype(np.float32)  # (b, D, h, w)
@@ -252,8 +252,8 @@ def sar_similarity(
         else:
             cos = np.einsum("bdhw,dhw->bhw", _unit(feats), scene_unit[0])
         total = np.where(covered, cos, 0.0).sum(axis=(1, 2), dtype=np.float64)
-        scores[start:stop] = np.where(n > 0, total / np.maximum(n, 1), -np.inf)
-    return scores
+        similarities[start:stop] = np.where(n > 0, total / np.maximum(n, 1), -np.inf)
+    return similarities
 
 
 @dataclass
@@ -265,7 +265,7 @@ class SarResult:
     Rs (V, 3, 3), ts (V, 3) mm: every variant, the input pose first.
     symmetries (V, 4, 4): the model-frame transform of each variant (identity first),
     ``T_variant = T_input @ symmetries[v]``.
-    scores (V,): each variant's mean cell-wise cosine similarity with the scene
+    similarities (V,): each variant's mean cell-wise cosine similarity with the scene
     (``-inf``: covered no cell; all NaN when there was a single variant and nothing
     was rendered).
     """
@@ -276,7 +276,7 @@ class SarResult:
     Rs: np.ndarray
     ts: np.ndarray
     symmetries: np.ndarray
-    scores: np.ndarray
+    similarities: np.ndarray
 
     @property
     def changed(self) -> bool:
@@ -286,7 +286,7 @@ class SarResult:
     @property
     def gain(self) -> float:
         """Score of the chosen variant minus that of the input pose (0 when kept)."""
-        return 0.0 if self.index == 0 else float(self.scores[self.index] - self.scores[0])
+        return 0.0 if self.index == 0 else float(self.similarities[self.index] - self.similarities[0])
 
 
 def symmetry_aware_refinement(
@@ -359,7 +359,7 @@ def symmetry_aware_refinement(
         renders[v], m = render_in_crop(renderer, key, Rs[v], ts[v], K, box, size, lighting)
         masks[v] = m & inside
     renders = match_image_mode(renders, image_mode)
-    scores = sar_similarity(encoder, scene_crop, renders, masks, min_cover, centre, batch_size)
-    best = int(np.argmax(scores))
-    index = best if scores[best] > scores[0] + min_gain else 0
-    return SarResult(index, Rs[index].copy(), ts[index].copy(), Rs, ts, Ss, scores)
+    similarities = sar_similarity(encoder, scene_crop, renders, masks, min_cover, centre, batch_size)
+    best = int(np.argmax(similarities))
+    index = best if similarities[best] > similarities[0] + min_gain else 0
+    return SarResult(index, Rs[index].copy(), ts[index].copy(), Rs, ts, Ss, similarities)

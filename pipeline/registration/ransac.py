@@ -11,7 +11,7 @@ hypotheses in batches of ``batch_size`` and is reproducible for a seed by constr
 (one numpy Generator); and ``"open3d"`` (``registration_ransac_based_on_correspondence``
 with edge-length and distance checkers, seeded through ``o3d.utility.random.seed``;
 repeated runs agreed in our tests, but it is multi-threaded and does not document
-determinism). On the synthetic benchmark (pipeline.registration.benchmark, FPFH only,
+determinism). On the synthetic benchmark (benchmarks/registration.py, FPFH only,
 3 objects x 3 radius sets x 10 views) numpy recovered 57/90 poses vs 54/90 for open3d,
 at similar speed (~50-150 ms for 1000 scene vs 5000 model points).
 
@@ -205,7 +205,7 @@ def _count_within(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarray
     return np.sum(res * res, axis=1) < thr * thr
 
 
-def register(
+def ransac_align(
     model_points: np.ndarray,
     model_feats: np.ndarray,
     scene_points: np.ndarray,
@@ -226,11 +226,11 @@ def register(
     sp = np.asarray(scene_points, dtype=np.float64).reshape(-1, 3)
     if len(mp) != len(model_feats) or len(sp) != len(scene_feats):
         raise ValueError(
-            f"register: {len(mp)} model points vs {len(model_feats)} features, "
+            f"ransac_align: {len(mp)} model points vs {len(model_feats)} features, "
             f"{len(sp)} scene points vs {len(scene_feats)} features"
         )
     if len(sp) < 3 or len(mp) < 3:
-        raise ValueError("register: need at least 3 model and 3 scene points")
+        raise ValueError("ransac_align: need at least 3 model and 3 scene points")
     thr = params.inlier_frac * float(diameter)
     corr, top1 = build_correspondences(model_feats, scene_feats, params)
     src, dst = mp[corr[:, 0]], sp[corr[:, 1]]

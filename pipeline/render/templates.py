@@ -1,8 +1,9 @@
 """Template viewpoints and template rendering (stage render_templates).
 
 Templates are object-centred square renders: the camera sits on a sphere around the
-model's origin (the bounding-box centre for BOP models) and looks at it, with a focal
-length chosen so that the object's diameter spans ``fill`` of the image side.
+model's bounding-box centre (the origin of BOP models and of the synthetic ones, but
+not of every model a user brings) and looks at it, with a focal length chosen so that
+the object's diameter spans ``fill`` of the image side.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.geometry.transforms import look_at_rotation
 from pipeline.render.renderer import Light, Lighting, Renderer
 
 IMAGE_MODES = ("rgb", "gray")
@@ -40,19 +42,6 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
     phi = i * np.pi * (3.0 - np.sqrt(5.0))
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def look_at_rotation(cam_dir: np.ndarray) -> np.ndarray:
-    """R_m2c (3, 3) of an OpenCV camera placed along unit vector ``cam_dir`` from the
-    origin, looking at the origin, with the image "up" as close to model +z as possible."""
-    z = -np.asarray(cam_dir, dtype=float)
-    z /= np.linalg.norm(z)
-    up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(-up, z)  # image y points down, so "up" is -y
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    # Rows are the camera axes expressed in the model frame.
-    return np.stack([x, y, z], axis=0)
 
 
 @dataclass(frozen=True)
@@ -102,3 +91,31 @@ def render_templates(renderer: Renderer, key, views: TemplateViews) -> dict[str,
         "R": views.R.astype(np.float64),
         "t": views.t.astype(np.float64),
     }
+
+
+def bbox_centre(mesh) -> np.ndarray:
+    """(3,) float64 mm: the centre of the axis-aligned bounding box of a mesh's vertices."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    return 0.5 * (v.min(axis=0) + v.max(axis=0))
+
+
+def render_object_templates(mesh, diameter: float, params, image_mode: str = "rgb") -> dict[str, np.ndarray]:
+    """The templates of one object (stage render_templates): :func:`render_templates` of
+    ``params.n_views`` :func:`template_views` looking at the mesh's :func:`bbox_centre`
+    (``t_m2c = t - R c`` puts the centre ``c`` on the optical axis at the same distance),
+    coloured like the dataset's images (:func:`match_image_mode`).
+
+    mesh: trimesh in mm; diameter mm; params: the run's
+    :class:`pipeline.config.RenderTemplatesParams`. Returns the arrays of
+    :func:`render_templates`.
+    """
+    views = template_views(params.n_views, diameter, params.image_size, fill=params.fill,
+                           distance_factor=params.distance_factor)
+    c = bbox_centre(mesh)
+    views = TemplateViews(R=views.R, t=views.t - views.R @ c, K=views.K, size=views.size)
+    zfar = 10 * params.distance_factor * diameter + float(np.linalg.norm(c))
+    with Renderer(params.image_size, params.image_size, znear=1.0, zfar=zfar) as r:
+        r.add_mesh("object", mesh)
+        arrays = render_templates(r, "object", views)
+    arrays["rgb"] = match_image_mode(arrays["rgb"], image_mode)
+    return arrays

@@ -31,7 +31,7 @@ def run_label(overrides: dict[str, str]) -> str:
     return " + ".join([run, *rest])
 
 
-def register(app: typer.Typer, show_app: typer.Typer) -> None:
+def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
     """Add ``report`` to the ``freeze`` app (``show_app`` is unused: the report is a page,
     not a figure)."""
 

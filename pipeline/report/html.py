@@ -537,7 +537,7 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
 def write_report(rp, dataset: str, out: Path, samples: int = 12, run_label: str | None = None) -> Path:
     """Write the report page of ``dataset`` (see :func:`build_report`) to ``out``
     atomically (a temporary sibling renamed into place); returns ``out``."""
-    from pipeline.bop.jsonio import atomic_write_text
+    from pipeline.store import atomic_write_text
 
     out = Path(out)
     atomic_write_text(out, build_report(rp, dataset, samples=samples, run_label=run_label))

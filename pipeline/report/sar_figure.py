@@ -20,7 +20,7 @@ class SarCase:
     """One estimate that went through SAR.
 
     crop: (S, S, 3) uint8 scene crop; icp_render / sar_render: (S, S, 3) uint8 renders
-    with masks (S, S) bool; scores: (V,) similarity per variant (variant 0 = ICP pose);
+    with masks (S, S) bool; similarities: (V,) per variant (variant 0 = ICP pose);
     chosen: index of the kept variant; title: caption (scene, image, object...).
     """
 
@@ -29,7 +29,7 @@ class SarCase:
     icp_mask: np.ndarray
     sar_render: np.ndarray
     sar_mask: np.ndarray
-    scores: np.ndarray
+    similarities: np.ndarray
     chosen: int
     title: str
 
@@ -60,13 +60,13 @@ def draw_sar_figure(cases: Sequence[SarCase], out: Path, title: str = "") -> Pat
         row[0].imshow(case.crop)
         row[0].set_title(case.title, fontsize=9)
         row[1].imshow(overlay(case.crop, case.icp_render, case.icp_mask))
-        row[1].set_title(f"ICP pose (variant 0): {case.scores[0]:.3f}", fontsize=9)
+        row[1].set_title(f"ICP pose (variant 0): {case.similarities[0]:.3f}", fontsize=9)
         row[2].imshow(overlay(case.crop, case.sar_render, case.sar_mask))
-        row[2].set_title(f"SAR pose (variant {case.chosen}): {case.scores[case.chosen]:.3f}", fontsize=9)
+        row[2].set_title(f"SAR pose (variant {case.chosen}): {case.similarities[case.chosen]:.3f}", fontsize=9)
         for ax in row[:3]:
             ax.set_xticks([])
             ax.set_yticks([])
-        finite = np.where(np.isfinite(case.scores), case.scores, np.nan)
+        finite = np.where(np.isfinite(case.similarities), case.similarities, np.nan)
         colors = ["tab:green" if i == case.chosen else "tab:gray" for i in range(len(finite))]
         row[3].bar(np.arange(len(finite)), finite, color=colors)
         lo, hi = np.nanmin(finite), np.nanmax(finite)
@@ -136,6 +136,6 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
                 renders.append(render_in_crop(r, obj_id, np.asarray(row.R).reshape(3, 3), np.asarray(row.t), K, box, S))
             cases.append(SarCase(crop=crop_and_resize(rgb, box, S), icp_render=renders[0][0], icp_mask=renders[0][1],
                                  sar_render=renders[1][0], sar_mask=renders[1][1],
-                                 scores=g.similarity.to_numpy(float), chosen=k,
+                                 similarities=g.similarity.to_numpy(float), chosen=k,
                                  title=f"scene {scene_id} image {im_id} cand {cand_id}" + (" (changed)" if changed else "")))
     return cases

@@ -15,8 +15,6 @@ function of (preset, seed): random draws come from generators seeded with
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -45,6 +43,7 @@ from pipeline.bop import (
     write_targets,
 )
 from pipeline.render import Renderer
+from pipeline.store import atomic_dir
 
 from .annotate import VISIB_TOL_MM, annotate_instance, image_targets, projected_bbox
 from .objects import SynthObject, build_object
@@ -287,22 +286,8 @@ def generate(
     out_dir = Path(out_dir)
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise FileExistsError(f"{out_dir} exists and is not empty; pass overwrite=True to replace it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
     t0 = time.perf_counter()
-    try:
+    with atomic_dir(out_dir) as tmp:
         summary = _write_dataset(tmp, name, preset, seed, progress)
-        if out_dir.exists():
-            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
-            out_dir.rename(old)
-            tmp.rename(out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     summary["seconds"] = round(time.perf_counter() - t0, 2)
     return summary

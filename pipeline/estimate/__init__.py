@@ -1,0 +1,16 @@
+"""The library side of ``freeze estimate`` (the method on one RGB-D image of one object).
+
+- :mod:`.inputs`: camera JSON, images, masks, boxes and the model, read and checked;
+- :mod:`.frame`: the frame written as a one-image BOP dataset with its manifest;
+- :mod:`.record`: ``pose.json``, read back from the stages' artifacts.
+
+The box rule lives in :mod:`pipeline.geometry.box_points`, the pictures in
+:mod:`pipeline.report.overlay`, and the command that runs the stages on the frame in
+:mod:`pipeline.estimate_cli`.
+"""
+
+from .inputs import (METRE_DIAMETER_LIMIT, Camera, EstimateError, load_camera, load_depth, load_mask, load_model,
+                     load_rgb, parse_bbox, scale_warning)
+
+__all__ = ["METRE_DIAMETER_LIMIT", "Camera", "EstimateError", "load_camera", "load_depth", "load_mask", "load_model",
+           "load_rgb", "parse_bbox", "scale_warning"]

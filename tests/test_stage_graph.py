@@ -1,0 +1,223 @@
+"""The stage graph is declared once (pipeline/stage_graph.py) and everything agrees with it:
+the keys, the Snakemake inputs, what each stage actually opens, what it publishes, and
+the layering (the library never imports the stages)."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline import config as cfg
+from pipeline import stage_graph
+from pipeline.plan import RunPlan, StageIO
+from pipeline.stage_graph import STAGES, UndeclaredRead, check_graph
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _plan(cache: Path, **overrides):
+    return RunPlan(cfg.load_run({"datasets": "synthtiny", **overrides}), cache=cache)["synthtiny"]
+
+
+def test_declarations_are_consistent_and_checked():
+    check_graph()
+    # refine's key must cover everything refine reads: drop the upstream that covers
+    # scene_features and model_features, and the check refuses the graph
+    bad = dict(STAGES)
+    bad["refine"] = dataclasses.replace(STAGES["refine"], keyed_by=("symmetries",))
+    with pytest.raises(ValueError, match="refine: keyed by|no keyed upstream covers"):
+        check_graph(bad)
+    bad = dict(STAGES)
+    bad["register"] = dataclasses.replace(STAGES["register"],
+                                          reads={"scene": ("scene_features", "model_features", "refine")})
+    with pytest.raises(ValueError, match="register: reads 'refine'"):
+        check_graph(bad)
+
+
+def test_keys_follow_the_declared_upstreams(tmp_path):
+    plan = _plan(tmp_path)
+    for name, spec in STAGES.items():
+        sp = plan[name]
+        assert sp.code_version == spec.code_version
+        assert set(sp.upstream) == set(spec.keyed_by), name
+        for u in spec.keyed_by:
+            expected = plan.dataset_key if u == "dataset" and spec.side != "model" else (
+                plan.models_key if u == "dataset" else plan.prior_key if u == "prior" else plan[u].key)
+            assert sp.upstream[u] == expected, (name, u)
+
+
+def test_snakemake_inputs_are_the_declared_reads(tmp_path):
+    plan = _plan(tmp_path)
+    objs = [f"obj_{o:06d}" for o in plan.obj_ids]
+    got = set(map(str, plan.input_manifests("refine", "scene_000001")))
+    want = {str(plan["register"].manifest("scene_000001")), str(plan["scene_features"].manifest("scene_000001")),
+            str(plan["segment_prior"].manifest("all")), str(plan["synth"].manifest("dataset"))}
+    want |= {str(plan[s].manifest(o)) for s in ("symmetries", "model_features") for o in objs}
+    assert got == want
+    collect = set(map(str, plan.input_manifests("refine", "all")))
+    assert {str(plan[s].manifest(f"scene_{i:06d}")) for s in ("refine", "register", "scene_features")
+            for i in plan.scene_ids} <= collect
+    assert plan.input_manifests("score", "all") == [plan["refine"].manifest("all"), plan["synth"].manifest("dataset")]
+    assert [str(p) for p in plan.input_manifests("model_features", objs[0])] == [
+        str(plan["render_templates"].manifest(objs[0])), str(plan["synth"].manifest("dataset"))]
+    # the Snakefile's rules take their inputs from here: no rule file names an upstream itself
+    for smk in (ROOT / "stages").glob("*.smk"):
+        text = smk.read_text()
+        assert "PLAN[wc.ds][" not in text.split("output:")[0], smk.name
+
+
+def test_stage_io_refuses_undeclared_reads_and_writes(tmp_path):
+    plan = _plan(tmp_path)
+    io = plan.io("register", "scene_000001")
+    assert io.input_dir("scene_features") == plan["scene_features"].item_dir("scene_000001")
+    with pytest.raises(UndeclaredRead, match="register .* reads 'symmetries'"):
+        io.input_dir("symmetries")
+    with pytest.raises(UndeclaredRead, match="prior"):
+        io.prior_paths
+    with pytest.raises(ValueError, match="register items are scene"):
+        plan.io("register", "obj_000002")
+    io = plan.io("symmetries", "obj_000002")
+    with pytest.raises(RuntimeError, match=r"wrote \['notes.txt'\]"):
+        with io.publish() as w:
+            (w.dir / "symmetries.json").write_text("{}")
+            (w.dir / "notes.txt").write_text("not declared")
+    assert not io.out.item_dir("obj_000002").exists()  # nothing published
+
+
+def _library_imports_of_stages() -> list[str]:
+    """Modules under pipeline/ (the command-line modules that run stages aside) that import ``stages``."""
+    allowed = {"pipeline/cli.py", "pipeline/estimate_cli.py"}
+    found = []
+    for path in sorted((ROOT / "pipeline").rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n == "stages" or n.startswith("stages.") for n in names) and rel not in allowed:
+                found.append(rel)
+    return found
+
+
+def test_the_library_never_imports_stages():
+    assert _library_imports_of_stages() == []
+
+
+METHOD = ("bop", "geometry", "render", "encoders", "registration", "refinement", "metrics", "synth", "estimate",
+          "segmentation", "model_side", "scene_side", "store", "config", "progress", "stage_graph")
+"""The method's modules (docs/architecture.md, "Layers"): pure functions over arrays,
+records and files, which never look at the plan, the stages or the commands."""
+ABOVE = ("pipeline.plan", "pipeline.artifacts", "pipeline.report.cli", "pipeline.report.html",
+         "pipeline.report.features_figure", "pipeline.report.sar_figure", "pipeline.cli", "pipeline.inspect_cli",
+         "pipeline.estimate_cli", "pipeline.datasets_check", "stages")
+
+
+def test_the_method_does_not_import_the_layers_above_it():
+    bad = []
+    for name in METHOD:
+        paths = sorted((ROOT / "pipeline" / name).rglob("*.py")) if (ROOT / "pipeline" / name).is_dir() else [
+            ROOT / "pipeline" / f"{name}.py"]
+        for path in paths:
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and not node.level:
+                    names = [node.module or ""]
+                elif isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                else:
+                    continue
+                bad += [(path.relative_to(ROOT).as_posix(), n) for n in names
+                        if any(n == a or n.startswith(a + ".") for a in ABOVE)]
+    assert bad == []
+
+
+def test_stage_modules_name_their_algorithm_one_hop_away():
+    """Each stage module's docstring names the library function holding its algorithm,
+    the one its declaration names, and that function exists."""
+    import importlib
+
+    for name, spec in STAGES.items():
+        module = importlib.import_module(spec.module)
+        assert spec.algorithm in (module.__doc__ or "").replace("\n", " "), name
+        mod, _, func = spec.algorithm.rpartition(".")
+        assert callable(getattr(importlib.import_module(mod), func)), spec.algorithm
+
+
+# ------------------------------------------------------------- what stages really open
+
+
+class _Opened:
+    """Every file opened by Python (audit hook) or read as Parquet (pyarrow opens files
+    in C++, past the hook) while ``active``."""
+
+    def __init__(self):
+        self.paths: list[Path] = []
+        self.active = False
+
+    def hook(self, event: str, args) -> None:
+        if self.active and event == "open" and isinstance(args[0], (str, bytes, Path)):
+            self.paths.append(Path(args[0] if not isinstance(args[0], bytes) else args[0].decode()))
+
+
+def _owner(path: Path, plan, cache: Path) -> str | None:
+    """What an opened path belongs to: a stage of the plan, 'dataset', 'prior', or None."""
+    path = path.resolve()
+    if any(path == p.resolve() for p in plan.prior_paths):
+        return "prior"
+    root = plan.root.resolve()
+    if root in path.parents:
+        return "dataset"
+    ds_cache = (cache / plan.name).resolve()
+    if ds_cache in path.parents:
+        return path.relative_to(ds_cache).parts[0]
+    return None
+
+
+@pytest.mark.slow
+def test_every_stage_opens_only_what_it_declares(tiny_run, tmp_path, monkeypatch):
+    """Re-run one job of every stage on a copy of the main synthtiny run, recording every
+    file each opens; each must be in its own output or in a declared read."""
+    import pipeline.store as store
+    from stages import run_stage
+
+    work, _ = tiny_run
+    cache = tmp_path / "cache"
+    shutil.copytree(work / "cache", cache)
+    plan = _plan(cache)
+    opened = _Opened()
+    sys.addaudithook(opened.hook)
+    read_table = store.read_table
+
+    def recording_read_table(path):
+        if opened.active:
+            opened.paths.append(Path(path))
+        return read_table(path)
+
+    import stages.refine, stages.register, stages.scene_features  # noqa: E401, F401  (bind their read_table first)
+
+    for module in list(sys.modules.values()):
+        if getattr(module, "read_table", None) is read_table:
+            monkeypatch.setattr(module, "read_table", recording_read_table)
+    jobs = [("render_templates", "obj_000002"), ("symmetries", "obj_000005"), ("model_features", "obj_000006"),
+            ("segment_prior", "all"), ("scene_features", "scene_000001"), ("register", "scene_000001"),
+            ("refine", "scene_000001"), ("refine", "all"), ("score", "all")]
+    assert {s for s, _ in jobs} == set(STAGES) - {"synth"}
+    used: dict[str, set[str]] = {}
+    for stage, item in jobs:
+        opened.paths.clear()
+        opened.active = True
+        try:
+            run_stage(plan, stage, item, progress=False)
+        finally:
+            opened.active = False
+        owners = {_owner(p, plan, cache) for p in opened.paths} - {None}
+        allowed = set(StageIO(plan, stage, item).spec.reads_for(stage_graph.item_kind(item))) | {stage}
+        assert owners, (stage, "recorded nothing: the instrumentation is broken")
+        assert owners <= allowed, (stage, item, sorted(owners - allowed))
+        used.setdefault(stage, set()).update(owners)
+    for stage, owners in used.items():  # each stage read something of every upstream it is keyed by
+        assert set(STAGES[stage].keyed_by) <= owners, (stage, sorted(owners))
