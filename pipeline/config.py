@@ -29,6 +29,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 MANIFEST_DIR = PROJECT_ROOT / "manifests"
+
+
+def shared_root() -> Path:
+    """The folder of the real samples semi-real datasets are built from: ``$FREEZE_SHARED``,
+    else ``shared/`` beside the project (``../shared``)."""
+    return Path(os.environ.get("FREEZE_SHARED", PROJECT_ROOT.parent / "shared")).resolve()
 DEFAULT_RUN = MANIFEST_DIR / "runs" / "default.yaml"
 
 _NAME = re.compile(r"^[a-z0-9][a-z0-9-]*$")
@@ -160,10 +166,12 @@ class EncoderManifest(_Strict):
 
 
 class DatasetManifest(_Strict):
-    """One dataset: a synthetic preset made by ``freeze synth`` or a BOP dataset on disk."""
+    """One dataset: a synthetic preset made by ``freeze synth``, a semi-real dataset built
+    from a real sample (``source``, under :func:`shared_root`), or a BOP dataset on disk.
+    Synthetic and semi-real datasets are built by the ``synth`` stage."""
 
     name: str
-    kind: Literal["synthetic", "bop"]
+    kind: Literal["synthetic", "bop", "semireal"]
     split: str = "test"
     split_type: str | None = None
     targets_file: str = "test_targets_bop19.json"
@@ -171,6 +179,14 @@ class DatasetManifest(_Strict):
     # synthetic datasets
     preset: str | None = None
     seed: int = 0
+    # semi-real datasets (pipeline/synth/semireal.py)
+    source: str | None = Field(None, description="the real BOP-format sample, relative to the shared folder")
+    depth: Literal["rendered", "real"] = Field(
+        "rendered", description="semi-real: depth rendered from the ground-truth poses through the sensor model, "
+                                "or the sample's real depth")
+    gt_prior: Literal["faulty", "exact"] = Field(
+        "faulty", description="semi-real: prior from the ground-truth visible masks with the synthetic prior's faults, "
+                              "or exact")
     # where the localisation prior lives; relative to the dataset root (synthetic) or
     # to bop_root (real datasets); may hold glob characters (must match one file) and
     # a "{detector}" placeholder filled from `detector` or the run's `priors`
@@ -329,6 +345,8 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
         raise ManifestError(f"{path}: field 'name' is '{ds.name}' but the file is named '{name}'")
     if ds.kind == "synthetic" and not ds.preset:
         raise ManifestError(f"{path}: field 'preset' is required for synthetic datasets")
+    if ds.kind == "semireal" and not ds.source:
+        raise ManifestError(f"{path}: field 'source' is required for semi-real datasets")
     return ds
 
 

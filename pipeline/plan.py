@@ -151,7 +151,7 @@ class DatasetPlan:
     @property
     def prior_paths(self) -> list[Path]:
         """The localisation prior files (several are merged by segment_prior)."""
-        base = self.root if self.dataset.kind == "synthetic" else Path(self.run.bop_root or ".")
+        base = self.root if self.dataset.kind in ("synthetic", "semireal") else Path(self.run.bop_root or ".")
         return [resolve_prior(base, pattern) for pattern in self.dataset.prior_patterns(self.run.priors)]
 
     @property
@@ -237,6 +237,12 @@ class StageIO:
         self._check("prior")
         return self.plan.prior_paths
 
+    @property
+    def source_dir(self) -> Path:
+        """The real sample a semi-real dataset is built from; the stage must read ``source``."""
+        self._check("source")
+        return cfg.shared_root() / self.plan.dataset.source
+
     def seed(self, name: str, seed: int = 0) -> int:
         """A seed derived from this stage's key and ``name`` (see :func:`pipeline.store.item_seed`)."""
         from pipeline.store import item_seed
@@ -289,6 +295,26 @@ def _synthetic_layout(ds: cfg.DatasetManifest) -> tuple[list[int], list[int]]:
     from pipeline.synth import preset_layout
 
     return preset_layout(ds.preset, ds.seed)
+
+
+def _semireal_layout(source: Path) -> tuple[list[int], list[int]]:
+    """(target objects, target scenes) of the real sample a semi-real dataset is built from."""
+    from pipeline.bop import BopDataset
+
+    targets = BopDataset(source).targets()
+    return sorted({t.obj_id for t in targets}), sorted({t.scene_id for t in targets})
+
+
+def _tree_sha1(folder: Path) -> str:
+    """SHA-1 over the relative paths and bytes of every file under ``folder`` (a real
+    sample of a few tens of MB: hashed whole, about 0.1 s)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for p in sorted(q for q in Path(folder).rglob("*") if q.is_file()):
+        h.update(p.relative_to(folder).as_posix().encode() + b"\0")
+        h.update(file_sha1(p).encode())
+    return h.hexdigest()
 
 
 def open_bop(root: Path, ds: cfg.DatasetManifest):
@@ -413,6 +439,12 @@ class RunPlan:
         ds = self.manifest(name)
         if ds.kind == "synthetic":
             return True, ""
+        if ds.kind == "semireal":
+            source = cfg.shared_root() / ds.source
+            if not (source / "test_targets_bop19.json").is_file():
+                return False, (f"{ds.name}: skipped, its real sample {source} is not here (semi-real datasets are built "
+                               "from ../shared/realdata; $FREEZE_SHARED points elsewhere)")
+            return True, ""
         if not self.run.bop_root:
             return False, f"{ds.name}: skipped, no bop_root set (--config bop_root=/path/to/bop, or $BOP_ROOT)"
         root = Path(self.run.bop_root) / (ds.folder or ds.name)
@@ -448,7 +480,10 @@ class RunPlan:
         upstream = {}
         for u in spec.keyed_by:
             # a model-side stage's "dataset" is the models' own fingerprint (see DatasetPlan.models_key)
-            upstream[u] = keys["models"] if (u == "dataset" and spec.side == "model") else keys[u]
+            value = keys["models"] if (u == "dataset" and spec.side == "model") else keys.get(u)
+            if value is None and u in EXTERNAL:
+                continue  # an input this dataset does not have (a synthetic dataset has no source)
+            upstream[u] = value
         key = make_key(stage, spec.code_version, params, upstream)
         sig = make_signature(readable, key)
         return StagePlan(ds, stage, key, sig, params, upstream, spec.code_version, self.cache / ds / stage / sig)
@@ -459,11 +494,19 @@ class RunPlan:
         sp = run.stages
         stages: dict[str, StagePlan] = {}
         score_extra: dict[str, Any] = {}
-        if ds.kind == "synthetic":
-            synth = self._stage(name, "synth", f"{ds.preset}-seed{ds.seed}", {"preset": ds.preset, "seed": ds.seed}, {})
+        if ds.kind in ("synthetic", "semireal"):
+            if ds.kind == "synthetic":
+                synth = self._stage(name, "synth", f"{ds.preset}-seed{ds.seed}", {"preset": ds.preset, "seed": ds.seed}, {})
+                obj_ids, scene_ids = _synthetic_layout(ds)
+            else:
+                source = cfg.shared_root() / ds.source
+                synth = self._stage(name, "synth", f"semireal-{ds.depth}-{ds.gt_prior}-seed{ds.seed}",
+                                    {"builder": "semireal", "source": ds.source, "depth": ds.depth,
+                                     "gt_prior": ds.gt_prior, "seed": ds.seed},
+                                    {"source": _tree_sha1(source)})
+                obj_ids, scene_ids = _semireal_layout(source)
             stages["synth"] = synth
             root = synth.item_dir("dataset") / name
-            obj_ids, scene_ids = _synthetic_layout(ds)
             dataset_key = models_key = prior_key = synth.key
         else:
             if not run.bop_root:

@@ -12,9 +12,10 @@ else is derived from these declarations:
   fails on any file it opens outside its declared reads);
 - the files a stage may publish (checked by ``StageIO.publish``).
 
-Reads name upstream stages or the two external inputs: ``dataset`` (the BOP dataset's
-own files: models, images, camera, ground truth, targets) and ``prior`` (the
-localisation prior files).
+Reads name upstream stages or the external inputs: ``dataset`` (the BOP dataset's own
+files: models, images, camera, ground truth, targets), ``prior`` (the localisation prior
+files) and ``source`` (the real sample a semi-real dataset is built from; a synthetic
+dataset has none, and an external input a dataset does not have is left out of keys).
 
 Items: ``dataset`` (the synthetic dataset itself), ``obj_XXXXXX`` (model side, one
 per object), ``scene_XXXXXX`` (scene side, one per scene) and ``all`` (dataset-wide).
@@ -51,8 +52,9 @@ from dataclasses import dataclass, field
 from typing import Iterable, Literal, Mapping
 
 ItemKind = Literal["dataset", "obj", "scene", "all"]
-EXTERNAL = ("dataset", "prior")
-"""Inputs that are not stages: the dataset's files and the localisation prior's."""
+EXTERNAL = ("dataset", "prior", "source")
+"""Inputs that are not stages: the dataset's files, the localisation prior's, and the real
+sample a semi-real dataset is built from."""
 
 
 class UndeclaredRead(RuntimeError):
@@ -108,9 +110,9 @@ class StageSpec:
 
 _SPECS = (
     StageSpec(
-        "synth", 1, ("dataset",), reads={}, writes={"dataset": ("{dataset}",)}, keyed_by=(),
-        algorithm="pipeline.synth.generate", side="dataset", synthetic_only=True,
-        summary="the synthetic BOP dataset and its faulty prior (synthetic datasets only)"),
+        "synth", 1, ("dataset",), reads={"dataset": ("source",)}, writes={"dataset": ("{dataset}",)},
+        keyed_by=("source",), algorithm="pipeline.synth.build_dataset", side="dataset", synthetic_only=True,
+        summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)"),
     StageSpec(
         "render_templates", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("templates.zarr",)},
         keyed_by=("dataset",), algorithm="pipeline.render.templates.render_object_templates", side="model",

@@ -1,7 +1,9 @@
-"""Stage synth: generate a synthetic BOP-format dataset (only for synthetic datasets).
+"""Stage synth: build the dataset of a synthetic or semi-real manifest (those only).
 
 Item ``dataset``: the BOP dataset folder ``<item>/<dataset name>/`` with its
-localisation prior under ``detections/``. Algorithm: :func:`pipeline.synth.generate`.
+localisation prior under ``detections/``. Algorithm: :func:`pipeline.synth.build_dataset`
+(the generator, :func:`pipeline.synth.generate`, or the semi-real builder,
+:func:`pipeline.synth.build_semireal`, which reads the real sample ``source``).
 """
 
 from __future__ import annotations
@@ -10,9 +12,9 @@ from pipeline.plan import DatasetPlan
 
 
 def run(plan: DatasetPlan, item: str = "dataset", progress: bool = True) -> None:
-    from pipeline.synth import generate
+    from pipeline.synth import build_dataset
 
     io = plan.io("synth", item)
+    source = io.source_dir if plan.dataset.kind == "semireal" else None
     with io.publish() as w:
-        w.summary.update(generate(w.dir / plan.name, plan.name, preset=plan.dataset.preset, seed=plan.dataset.seed,
-                                  progress=progress))
+        w.summary.update(build_dataset(plan.dataset, w.dir / plan.name, source=source, progress=progress))
