@@ -2,7 +2,10 @@
 
 ``tiny`` is for unit tests (seconds), ``mini`` for an end-to-end run of the whole
 pipeline in a few minutes on two cores (every object at least once, ~20-40 targets),
-``bench`` for measurements (several hundred targets).
+``bench`` for measurements (several hundred targets), ``hard`` for measurements on
+scenes that depart from the templates the way camera images do (colour drift, white
+balance, exposure, gamma, blur, noise, highlights, a noisier and holier depth:
+:mod:`pipeline.synth.camera_gap`).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .objects import OBJ_IDS
+from .camera_gap import CameraGap
 from .priors import PriorFaults
 from .sensor import DepthSensor
 
@@ -25,6 +29,8 @@ class SynthPreset:
     distractors_per_scene: (min, max) clutter objects that are not in the dataset
     (not annotated, like the unannotated objects of LM or T-LESS scenes).
     camera: fx, fy, cx, cy (px) of a Primesense-like 640x480 camera.
+    camera_gap: how the scene images depart from renders (None: the plain camera model
+    of :func:`pipeline.synth.sensor.simulate_rgb`).
     """
 
     name: str
@@ -42,6 +48,7 @@ class SynthPreset:
     depth_scale: float = 0.1
     sensor: DepthSensor = field(default_factory=DepthSensor)
     faults: PriorFaults = field(default_factory=PriorFaults)
+    camera_gap: CameraGap | None = None
 
     @property
     def K(self) -> np.ndarray:
@@ -64,6 +71,11 @@ PRESETS: dict[str, SynthPreset] = {
                         distractors_per_scene=(1, 1)),
     "mini": SynthPreset("mini", obj_ids=OBJ_IDS, n_scenes=3, images_per_scene=2, objects_per_scene=(4, 5)),
     "bench": SynthPreset("bench", obj_ids=OBJ_IDS, n_scenes=12, images_per_scene=7, objects_per_scene=(5, 8)),
+    # Kinect-like depth: twice the axial noise, 1/8 px disparity steps, more dropped edges and blobs
+    "hard": SynthPreset("hard", obj_ids=OBJ_IDS, n_scenes=6, images_per_scene=4, objects_per_scene=(4, 6),
+                        sensor=DepthSensor(noise_k=3.0e-6, disparity_step_px=0.125, edge_drop_prob=0.8,
+                                           dropout_fraction=0.01),
+                        camera_gap=CameraGap()),
 }
 
 

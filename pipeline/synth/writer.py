@@ -60,6 +60,7 @@ from .scene import (
     sample_lights,
     sample_views,
 )
+from .camera_gap import camera_rgb, drift_colours, surface_holes
 from .sensor import simulate_depth, simulate_rgb
 from .textures import TABLE_TEXTURES
 
@@ -141,9 +142,12 @@ def _write_dataset(root: Path, name: str, preset: SynthPreset, seed: int, progre
         renderer = Renderer(W, H, znear=100.0, zfar=15000.0)
         out = _Outputs()
         try:
+            drift = np.random.default_rng([seed, 99])
             for o in preset.obj_ids:
-                # Render what users load: the written PLY, not the in-memory mesh.
-                renderer.add_mesh(o, load_mesh(root / "models" / f"obj_{o:06d}.ply"))
+                # Render what users load: the written PLY, not the in-memory mesh (with the
+                # hard preset, its colours drifted: the scene is not printed like the model).
+                mesh = load_mesh(root / "models" / f"obj_{o:06d}.ply")
+                renderer.add_mesh(o, drift_colours(mesh, drift, preset.camera_gap) if preset.camera_gap else mesh)
             for scene_id, ids in enumerate(compose_scenes(preset, np.random.default_rng([seed, 0])), start=1):
                 _write_scene(root, scene_id, ids, preset, seed, renderer, poses, out, step)
         finally:
@@ -231,8 +235,18 @@ def _write_scene(
         clutter_c = [in_cam(p) for p in scene.clutter]
         items = [(k, Rc, tc) for k in scene.room_keys] + objs_c + clutter_c
         rgb, depth = renderer.render(items, K, rgb=True, lighting=scene.lights.in_camera(Rc, tc))
-        measured = simulate_depth(depth, K, rng, preset.sensor)
-        save_rgb(sdir / "rgb" / f"{im_id:06d}.png", simulate_rgb(rgb, rng))
+        if preset.camera_gap is None:
+            measured = simulate_depth(depth, K, rng, preset.sensor)
+            image = simulate_rgb(rgb, rng)
+        else:
+            on_objects = np.zeros((H, W), bool)
+            for key, R, t in objs_c + clutter_c:
+                d = renderer.render_depth(key, R, t, K)
+                on_objects |= (d > 0) & (np.abs(d - depth) <= VISIB_TOL_MM)
+            image, highlight = camera_rgb(rgb, depth, on_objects, K, rng, preset.camera_gap)
+            measured = simulate_depth(depth, K, rng, preset.sensor)
+            measured[surface_holes(rgb, highlight, on_objects, rng, preset.camera_gap)] = 0.0
+        save_rgb(sdir / "rgb" / f"{im_id:06d}.png", image)
         save_depth_png(sdir / "depth" / f"{im_id:06d}.png", measured, ds)
         gts[im_id], infos[im_id] = [], []
         visible: list[VisibleInstance] = []
