@@ -9,13 +9,21 @@ scene points are the instance's candidate points as ``scene_features`` lifts the
 its ground-truth visible mask (outliers removed), M = 1000 of them sampled as the
 pipeline does. Variants:
 
-- ``pipeline``: :func:`pipeline.geometry.icp.refine_icp` as the refine stage calls it
-  (5000 points sampled on the model with their face normals, the M scene points,
-  point-to-plane, correspondence distance 0.1, 0.05, 0.025 d, 30 iterations each);
+- ``hypothesis-icp``: :func:`pipeline.geometry.icp.refine_icp` as the refine stage calls
+  it on every hypothesis (5000 points sampled on the model with their face normals, the
+  M scene points, point-to-plane, correspondence distance 0.1, 0.05, 0.025 d, 30
+  iterations each);
+- ``pipeline``: ``hypothesis-icp`` followed by the fine ICP that refine runs on each
+  candidate's chosen pose (:class:`pipeline.scene_side.FineIcp`, for objects without
+  shape symmetries): 2000 of the candidate points against 20000 model surface samples,
+  same schedule;
 - ``dense-scene``: the same with every candidate point instead of M;
 - ``tukey``: the same with a Tukey robust kernel (k = the current correspondence distance / 2);
 - ``dense-model``: the model's own vertices with their vertex normals (Open3D's ICP "on
   the dense model"), every candidate point, point-to-plane, same schedule;
+- ``model-vertices``: the model's vertices and vertex normals, the M scene points;
+- ``samples-20k``: the pipeline's ICP on 20000 surface samples instead of 5000;
+- ``samples-20k-dense-scene``: the same with every candidate point;
 - ``point-to-point``: the pipeline's ICP with point-to-point error;
 - ``gicp``: Open3D's generalized ICP (plane-to-plane, covariances from the points'
   neighbourhoods), the pipeline's points and schedule.
@@ -62,11 +70,20 @@ def icp_variants(model_mesh, diameter: float, seed: int):
     from pipeline.geometry.sampling import sample_surface
 
     pts, nrm = sample_surface(model_mesh, 5000, seed=seed)
+    pts20, nrm20 = sample_surface(model_mesh, 20000, seed=seed)
     verts = np.array(model_mesh.vertices, np.float64)
     vnrm = np.array(model_mesh.vertex_normals, np.float64)
 
-    def ours(points_all, points_m, R0, t0):
+    def hypothesis_icp(points_all, points_m, R0, t0):
         r = refine_icp(pts, nrm, points_m, R0, t0, diameter)
+        return r.R, r.t
+
+    def ours(points_all, points_m, R0, t0):
+        from pipeline.scene_side import sample_candidate
+
+        r = refine_icp(pts, nrm, points_m, R0, t0, diameter)
+        fine = points_all[sample_candidate(len(points_all), 2000, 0)]
+        r = refine_icp(pts20, nrm20, fine, r.R, r.t, diameter)
         return r.R, r.t
 
     def dense_scene(points_all, points_m, R0, t0):
@@ -96,6 +113,26 @@ def icp_variants(model_mesh, diameter: float, seed: int):
     def dense_model(points_all, points_m, R0, t0):
         return _o3d(verts, vnrm, points_all, R0, t0, kernel=False)
 
+    def model_vertices(points_all, points_m, R0, t0):
+        return _o3d(verts, vnrm, points_m, R0, t0, kernel=False)
+
+    def dense_samples(points_all, points_m, R0, t0):
+        r = refine_icp(pts20, nrm20, points_m, R0, t0, diameter)
+        return r.R, r.t
+
+    def dense_both(points_all, points_m, R0, t0):
+        r = refine_icp(pts20, nrm20, points_all, R0, t0, diameter)
+        return r.R, r.t
+
+    def fine(n_scene):
+        def run(points_all, points_m, R0, t0):
+            from pipeline.scene_side import sample_candidate
+
+            dense = points_all[sample_candidate(len(points_all), n_scene, 0)]
+            r = refine_icp(pts20, nrm20, dense, R0, t0, diameter)
+            return r.R, r.t
+        return run
+
     def point_to_point(points_all, points_m, R0, t0):
         r = refine_icp(pts, nrm, points_m, R0, t0, diameter, point_to_plane=False)
         return r.R, r.t
@@ -114,8 +151,10 @@ def icp_variants(model_mesh, diameter: float, seed: int):
                 reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
         return invert(*matrix_to_rt(T))
 
-    return {"pipeline": ours, "dense-scene": dense_scene, "tukey": tukey, "dense-model": dense_model,
-            "point-to-point": point_to_point, "gicp": gicp}
+    return {"pipeline": ours, "hypothesis-icp": hypothesis_icp, "dense-scene": dense_scene, "tukey": tukey, "dense-model": dense_model,
+            "point-to-point": point_to_point, "gicp": gicp, "model-vertices": model_vertices,
+            "samples-20k": dense_samples, "samples-20k-dense-scene": dense_both, "fine-2000": fine(2000),
+            "fine-5000": fine(5000)}
 
 
 def main() -> None:
@@ -123,6 +162,7 @@ def main() -> None:
     ap.add_argument("--datasets", default="tyol,semilmo")
     ap.add_argument("--perturb", default="0:0,5:10,10:20")
     ap.add_argument("--per-image", type=int, default=3, help="instances per image (semilmo: 40 images)")
+    ap.add_argument("--variants", default="", help="comma-separated variants to run (default: all)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "icp.md")
     args = ap.parse_args()
 
@@ -163,6 +203,8 @@ def main() -> None:
                     for angle, shift in starts:
                         R0, t0 = perturb_pose(g.R, g.t, angle, shift, rng=n_cases) if angle or shift else (g.R, g.t)
                         for vname, fn in variants[g.obj_id].items():
+                            if args.variants and vname not in args.variants.split(","):
+                                continue
                             t_start = time.perf_counter()
                             R, t = fn(pts, pts_m, R0, t0)
                             seconds[vname] = seconds.get(vname, 0.0) + time.perf_counter() - t_start

@@ -92,6 +92,27 @@ class RegisterParams(_Strict):
     confidence: float = Field(0.999, gt=0, lt=1)
     mutual: bool = False
     seed: int = 0
+    hypotheses: int = Field(3, ge=1, description="distinct coarse poses kept from each RANSAC (non-maximum "
+                                                 "suppression in pose space); the paper's fusion keeps 1 when a "
+                                                 "weighted hypothesis is added")
+    modality_hypotheses: bool = Field(True, description="add the best poses of each modality's own matches to a "
+                                                        "candidate's hypotheses")
+    weighting: bool = Field(True, description="add a hypothesis from the fusion with each modality weighted by how "
+                                              "far its matches agree with the referee pose beyond chance")
+    signal_none: float = Field(3.0, description="agreement of a modality's matches beyond chance (z-score) up to "
+                                                "which its fusion weight is 0")
+    signal_full: float = Field(6.0, description="agreement beyond chance (z-score) from which a modality's fusion "
+                                                "weight is 1 (linear in between)")
+    nms_deg: float = Field(30.0, gt=0, description="hypotheses closer than this rotation (deg) and nms_frac "
+                                                   "translation are one")
+    nms_frac: float = Field(0.2, gt=0, description="translation of the pose-space suppression, fraction of the "
+                                                   "diameter")
+
+    @model_validator(mode="after")
+    def _signal_order(self) -> "RegisterParams":
+        if self.signal_full <= self.signal_none:
+            raise ValueError(f"signal_full ({self.signal_full}) must exceed signal_none ({self.signal_none})")
+        return self
 
 
 class RefineParams(_Strict):
@@ -99,10 +120,21 @@ class RefineParams(_Strict):
     max_corr_frac: float = Field(0.1, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
     iterations: int = Field(30, ge=1, description="ICP iterations per threshold of the coarse-to-fine schedule")
     point_to_plane: bool = True
-    select_by: Literal["evidence", "inliers", "prior", "fitness"] = Field(
-        "evidence", description="how a target's candidates are ranked: the registration evidence (RANSAC inlier "
-                                "ratio x ICP fitness), RANSAC inliers (the paper), the prior's confidence, or "
-                                "the ICP fitness alone ('score' is accepted for 'evidence', its former name)")
+    select_by: Literal["verification", "evidence", "inliers", "prior", "fitness"] = Field(
+        "verification", description="how a candidate's hypotheses and a target's candidates are ranked: the "
+                                    "verification score (rendered depth and silhouette against the observation, "
+                                    "plus the evidence), the registration evidence (RANSAC inlier ratio x ICP "
+                                    "fitness), RANSAC inliers (the paper), the prior's confidence, or the ICP "
+                                    "fitness alone ('score' is accepted for 'evidence', its former name)")
+    fine_icp_points: int = Field(2000, ge=0, description="each candidate's chosen pose is refined again by ICP on up "
+                                                         "to this many of its depth points (0: off)")
+    fine_icp_model_points: int = Field(20000, ge=100, description="model surface samples of the fine ICP")
+    verify_tol_frac: float = Field(0.05, gt=0, description="verification: rendered and observed depths agree within "
+                                                           "this fraction of the diameter")
+    verify_min_tol_mm: float = Field(5.0, ge=0, description="verification: the depth tolerance is at least this "
+                                                            "(sensor noise), mm")
+    verify_margin: float = Field(0.25, ge=0, description="verification window: the candidate's box grown by this "
+                                                         "fraction of its size on every side")
     duplicate_frac: float = Field(0.25, gt=0, description="candidates of a target whose translations are closer "
                                                           "than this fraction of the diameter are one instance")
     sar: bool = Field(True, description="symmetry-aware refinement of objects with geometric symmetries")

@@ -325,6 +325,10 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
             console.print(f"[red]error:[/] {e}")
             raise typer.Exit(1)
         r = res.record
+        h = r["hypothesis"]
+        console.print(f"chosen: the {h['source']} hypothesis, verification {h['verification']['verification']:.3f} "
+                      f"(best of {len(r['hypotheses'])}; fusion weights geometric {h['fusion_weights']['geometric']:g}, "
+                      f"visual {h['fusion_weights']['visual']:g}){'; fine ICP' if h['fine_icp'] else ''}")
         console.print(f"evidence {r['evidence']:.3f} (inlier ratio {r['inlier_ratio']:.3f} x ICP fitness "
                       f"{r['fitness']:.3f}); {r['n_inliers']} RANSAC inliers of {r['n_points']} points; SAR "
                       + (f"variant {r['sar_variant']} of {r['sar_n_variants']}" if r["sar_variant"] >= 0

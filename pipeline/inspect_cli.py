@@ -314,3 +314,38 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         for note in case.notes:
             _err().print(f"[yellow]{note}")
         _out().print(f"object {obj}, scene {case.scene_id}, image {case.im_id}, candidate {case.cand_id}: {path}")
+
+    @show_app.command("hypotheses")
+    def show_hypotheses(
+        dataset: str = typer.Option(..., help="dataset of the run"),
+        scene: Optional[int] = typer.Option(None, help="scene id (default: every scene)"),
+        candidate: Optional[int] = typer.Option(None, help="candidate id (default: the most telling candidates)"),
+        obj: Optional[int] = typer.Option(None, help="only this object's candidates"),
+        limit: int = typer.Option(6, min=1, help="candidates drawn at most"),
+        out: Optional[Path] = typer.Option(None, help="folder for the PNG (default <cache>/../results/figures)"),
+        config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
+    ) -> None:
+        """Every coarse hypothesis of some candidates after ICP, as the verification saw it: the model at each pose
+        coloured by its depth against the sensor's, the mask, each term of the score, the chosen one framed:
+        hypotheses_<dataset>[_scene_<id>][_cand_<id>].png. By default the candidates whose chosen hypothesis is not
+        the paper's fused pose come first."""
+        from pipeline.plan import RunPlan
+        from pipeline.report.hypotheses_figure import draw_hypotheses_figure, hypothesis_cases
+
+        rp = RunPlan(_load_run(config))
+        try:
+            plan = rp[dataset]
+            if scene is not None and scene not in plan.scene_ids:
+                raise LookupError(f"{dataset}: no scene {scene} (scenes: {', '.join(map(str, plan.scene_ids))})")
+            cases = hypothesis_cases(plan, limit=limit, scene_id=scene, cand_id=candidate, obj_id=obj)
+        except (FileNotFoundError, LookupError, ValueError) as e:
+            _err().print(f"[red]{e}")
+            raise typer.Exit(2)
+        if not cases:
+            _err().print(f"[red]{dataset}: no candidate with hypotheses to draw")
+            raise typer.Exit(1)
+        folder = out or rp.cache.parent / "results" / "figures"
+        name = f"hypotheses_{dataset}" + (f"_scene_{scene:06d}" if scene is not None else "") + (
+            f"_cand_{candidate}" if candidate is not None else "")
+        path = draw_hypotheses_figure(cases, folder / f"{name}.png")
+        _out().print(f"{len(cases)} candidate(s): {path}")

@@ -24,7 +24,7 @@ Units and conventions: BOP's (mm, OpenCV camera, model-to-camera ``R``, ``t``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -32,17 +32,29 @@ import pandas as pd
 
 from pipeline.config import RefineParams, RegisterParams, SceneFeaturesParams
 
-CANDIDATE_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "prior_score", "n_inliers", "inlier_ratio", "R", "t",
-                     "fitness", "inlier_rmse", "evidence", "time_s"]
-"""Columns of refine's ``candidates.parquet`` (before the choice adds selected, rank, note)."""
-POSE_COLUMNS = ["scene_id", "im_id", "obj_id", "cand_id", "R", "t", "score", "evidence", "fitness", "inlier_rmse",
-                "n_inliers", "sar_variant", "sar_reason"]
+VERIFICATION_COLUMNS = ["silhouette", "depth_fit", "coverage", "free_space", "verification"]
+"""The verification terms of a refined pose and its score
+(:mod:`pipeline.registration.verification`)."""
+CANDIDATE_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "source", "prior_score", "n_inliers",
+                     "inlier_ratio", "R", "t", "fitness", "inlier_rmse", "evidence", *VERIFICATION_COLUMNS,
+                     "fine_icp", "time_s"]
+"""Columns of refine's ``candidates.parquet``: each candidate's chosen hypothesis, its pose
+after the fine ICP when ``fine_icp`` (before the choice among a target's candidates adds
+selected, rank, note); time_s is the candidate's, over its hypotheses and the fine ICP."""
+HYPOTHESIS_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "source", "prior_score", "n_inliers",
+                      "inlier_ratio", "R", "t", "fitness", "inlier_rmse", "evidence", *VERIFICATION_COLUMNS, "time_s",
+                      "chosen"]
+"""Columns of refine's ``hypotheses.parquet``: every coarse hypothesis after ICP, with its
+verification terms, and whether it is its candidate's pose."""
+POSE_COLUMNS = ["scene_id", "im_id", "obj_id", "cand_id", "hyp", "source", "R", "t", "score", "evidence",
+                "verification", "fitness", "inlier_rmse", "n_inliers", "sar_variant", "sar_reason"]
 """Columns of refine's ``poses.parquet``; ``score`` is the value written to the results CSV."""
 SAR_COLUMNS = ["scene_id", "im_id", "obj_id", "cand_id", "variant", "R", "t", "similarity", "chosen"]
 """Columns of refine's ``sar.parquet``: one row per symmetric variant tried."""
-REGISTER_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "prior_score", "status", "reason", "R", "t",
-                    "n_inliers", "inlier_ratio", "fitness", "n_correspondences", "time_s"]
-"""Columns of register's ``candidates.parquet``."""
+REGISTER_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "prior_score", "status", "reason", "hyp", "source",
+                    "source_rank", "w_geometric", "w_visual", "signal_geometric", "signal_visual", "modalities_agree",
+                    "R", "t", "n_inliers", "inlier_ratio", "fitness", "n_correspondences", "time_s"]
+"""Columns of register's ``candidates.parquet``: one row per coarse hypothesis."""
 
 Progress = Callable[[], None]
 """Called once per candidate done (a progress bar's ``advance``)."""
@@ -183,30 +195,194 @@ def pack_candidates(found: Sequence[CandidateFeatures], n_points: int, geo_dim: 
 
 @dataclass
 class MatchableModel:
-    """An object's model side ready for matching: points (N, 3) mm, fused (N, D)
-    features, and the PCA basis its visual part was reduced with (None when the run has
-    no visual channels)."""
+    """An object's model side ready for matching: points (N, 3) mm, its geometric (N, G)
+    and PCA-reduced visual (N, V) features, each L2-normalised per row (``visual`` is
+    None when the run has no visual channels or the object's visual features carry no
+    variance), and the PCA basis its visual part was reduced with (None without visual
+    channels)."""
 
     points: np.ndarray
-    fused: np.ndarray
+    geometric: np.ndarray
+    visual: np.ndarray | None
     basis: Any
+
+    @property
+    def fused(self) -> np.ndarray:
+        """The paper's fused features (both parts at weight 1), (N, G + V)."""
+        from pipeline.registration.fusion import fuse
+
+        return fuse(self.geometric, self.visual if self.visual is not None else self._zero_visual())
+
+    def _zero_visual(self) -> np.ndarray | None:
+        return None if self.basis is None else np.zeros((len(self.points), self.basis.n_components), np.float32)
+
+    @property
+    def modalities(self) -> tuple[str, ...]:
+        """The modalities whose features can carry signal for this object."""
+        return tuple(m for m, ok in (("geometric", self.geometric.shape[1] > 0), ("visual", self.visual is not None))
+                     if ok)
 
 
 def matchable_model(features: Mapping[str, np.ndarray], pca_dim: int) -> MatchableModel:
-    """Fuse a model's ``features.zarr`` arrays: PCA of its visual features to ``pca_dim``
-    (fitted on the model), each part L2-normalised, concatenated."""
-    from pipeline.registration.fusion import apply_pca, fit_pca, fuse
+    """A model's ``features.zarr`` arrays made matchable: PCA of its visual features to
+    ``pca_dim`` (fitted on the model), each part L2-normalised."""
+    from pipeline.registration.fusion import apply_pca, fit_pca, l2_normalise
 
     visual = features["visual"]
     basis = fit_pca(visual, n_components=pca_dim) if visual.shape[1] else None
-    fused = fuse(features["geometric"], apply_pca(basis, visual) if basis is not None else None)
-    return MatchableModel(points=features["points"], fused=fused, basis=basis)
+    reduced = l2_normalise(apply_pca(basis, visual)) if basis is not None and basis.informative else None
+    return MatchableModel(points=features["points"], geometric=l2_normalise(features["geometric"]), visual=reduced,
+                          basis=basis)
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One coarse pose of a candidate: where it came from (``source``: ``fused`` (the
+    paper's), ``weighted`` (fused with the modality weights), ``geometric`` or ``visual``
+    matches; ``rank``: its place among that source's distinct
+    RANSAC poses, 0 = the winner) and its :class:`pipeline.registration.ransac.Registration`."""
+
+    source: str
+    rank: int
+    registration: Any
+
+
+@dataclass(frozen=True)
+class CoarseResult:
+    """A candidate's coarse hypotheses, distinct, in the order made, and the fusion
+    weights (0-1) of its ``weighted`` hypothesis, with the held-out signals (z-scores)
+    they came from (see :func:`coarse_hypotheses`)."""
+
+    hypotheses: list[Hypothesis]
+    w_geometric: float = 1.0
+    w_visual: float = 1.0
+    signal_geometric: float = float("nan")
+    signal_visual: float = float("nan")
+    agree: bool = True
+
+
+def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.ndarray, visual: np.ndarray,
+                      diameter: float, params: RegisterParams, seed: int) -> CoarseResult:
+    """Distinct coarse model-to-camera poses of a candidate's points (k, 3) mm with their
+    geometric (k, G) and visual (k, C) features.
+
+    With both modalities (geometric features, and visual ones with variance on the
+    model):
+
+    - ``geometric``, ``visual``: the ``params.hypotheses`` best distinct RANSAC poses of
+      each modality's own matches (with ``params.modality_hypotheses``);
+    - fusion weights (``params.weighting``, :func:`_modality_weights`): RANSAC on each
+      modality's matches of the even-indexed points gives one pose each; the matches of
+      the odd-indexed points, held out, are scored against both poses
+      (:func:`pipeline.registration.fusion.match_signal`, a z-score of agreeing matches
+      beyond chance). A modality's *own* signal is that of its matches under its pose;
+      its *cross* signal, under the other's. When some cross signal reaches
+      ``params.signal_none`` the modalities agree and each weight follows its larger
+      signal (:func:`~pipeline.registration.fusion.modality_weight`: 0 up to
+      ``signal_none``, 1 from ``signal_full``); when neither has signal both are 1 (the
+      paper); when both have signal but neither agrees with the other's pose, the one
+      with the stronger own signal gets 1 and the other 0. (Held out from RANSAC, random
+      matches score about 0; but matches that are wrong and spatially coherent, as a
+      smooth colour descriptor's on a real image, agree with their own modality's pose
+      too: only the cross signal tells them apart.)
+    - ``fused``: RANSAC on the paper's fusion (equal weights): its ``params.hypotheses``
+      best distinct poses, or its winner only when the weights are not equal, and then
+    - ``weighted``: the RANSAC winner of the weighted fusion (unless a weight is 0: that
+      fusion is then the other modality alone, already a hypothesis).
+
+    With one modality: its ``params.hypotheses`` best distinct poses. Poses that repeat
+    an earlier one (within 5 degrees and 0.05 diameters) are dropped. With both, every
+    hypothesis' n_inliers and inlier_ratio count the same matches, the weighted
+    fusion's top-1 matches, so that the evidence compares hypotheses of any source.
+    """
+    from pipeline.registration.fusion import apply_pca, fuse, l2_normalise
+    from pipeline.registration.ransac import RansacParams, distinct_poses, feature_neighbours, ransac_hypotheses
+
+    ransac = RansacParams(inlier_frac=params.inlier_frac, max_iterations=params.max_iterations,
+                          confidence=params.confidence, mutual=params.mutual)
+    g = l2_normalise(geometric)
+    v = l2_normalise(apply_pca(model.basis, visual)) if model.visual is not None else None
+
+    def run(mf: np.ndarray, sf: np.ndarray, k: int, rows: Any = slice(None)) -> list:
+        return ransac_hypotheses(model.points, mf, points[rows], sf[rows], diameter, params=ransac, seed=seed, k=k,
+                                 nms_deg=params.nms_deg, nms_frac=params.nms_frac)
+
+    found: list[Hypothesis] = []
+    result = CoarseResult(found)
+    if model.modalities == ("geometric", "visual"):
+        feats = {"geometric": (model.geometric, g), "visual": (model.visual, v)}
+        if params.modality_hypotheses:
+            for m, (mf, sf) in feats.items():
+                found += [Hypothesis(m, j, r) for j, r in enumerate(run(mf, sf, params.hypotheses))]
+        if params.weighting:
+            result = _modality_weights(model, points, feats, diameter, params, run, found)
+        # With one weight 0 the weighted fusion is the other modality alone, whose own
+        # RANSAC (same seed, same matches) is already a hypothesis.
+        weighted = (result.w_geometric, result.w_visual) != (1.0, 1.0) and (
+            min(result.w_geometric, result.w_visual) > 0 or not params.modality_hypotheses)
+        paper = run(model.fused, fuse(g, v), 1 if weighted else params.hypotheses)
+        found += [Hypothesis("fused", j, r) for j, r in enumerate(paper)]
+        if weighted:
+            wg, wv = result.w_geometric, result.w_visual
+            found += [Hypothesis("weighted", 0, run(fuse(model.geometric, model.visual, wv, wg), fuse(g, v, wv, wg),
+                                                    1)[0])]
+    elif model.modalities:
+        (m,) = model.modalities
+        mf, sf = (model.geometric, g) if m == "geometric" else (model.visual, v)
+        found += [Hypothesis(m, j, r) for j, r in enumerate(run(mf, sf, params.hypotheses))]
+    else:  # no modality can carry signal: the paper's fusion, as it is
+        vz = np.zeros((len(points), model.basis.n_components), np.float32) if model.basis is not None else None
+        found += [Hypothesis("fused", j, r) for j, r in enumerate(run(model.fused, fuse(g, vz), params.hypotheses))]
+    keep = distinct_poses([(h.registration.R, h.registration.t) for h in found], len(found), 5.0, 0.05 * diameter)
+    found[:] = [found[i] for i in keep]
+    if model.modalities == ("geometric", "visual"):
+        # Every hypothesis counts its inliers among the same matches, those of the
+        # weighted fusion: a visual hypothesis' own visual inliers and a geometric one's
+        # geometric inliers are not comparable, and the evidence breaks the ties that
+        # depth cannot (a shape's near-symmetries).
+        wg, wv = result.w_geometric, result.w_visual
+        matches = feature_neighbours(fuse(g, v, wv, wg), fuse(model.geometric, model.visual, wv, wg))[:, 0]
+        thr = params.inlier_frac * diameter
+        for i, h in enumerate(found):
+            r = h.registration
+            res = model.points[matches] @ r.R.T + r.t - points
+            n = int(np.sum(np.sum(res * res, axis=1) < thr * thr))
+            found[i] = Hypothesis(h.source, h.rank, replace(r, n_inliers=n, inlier_ratio=n / len(points)))
+    return result
+
+
+def _modality_weights(model: MatchableModel, points: np.ndarray, feats: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                      diameter: float, params: RegisterParams, run: Callable[..., list],
+                      found: list[Hypothesis]) -> CoarseResult:
+    """The fusion weights of :func:`coarse_hypotheses` (see there) and the signals behind them."""
+    from pipeline.registration.fusion import match_signal, modality_weight
+    from pipeline.registration.ransac import feature_neighbours
+
+    fit, held = np.arange(len(points)) % 2 == 0, np.arange(len(points)) % 2 == 1
+    poses = {m: run(mf, sf, 1, fit)[0] for m, (mf, sf) in feats.items()}
+    thr = params.inlier_frac * diameter
+    z = {}  # z[m][n]: modality m's held-out matches under modality n's pose
+    for m, (mf, sf) in feats.items():
+        matches = feature_neighbours(sf[held], mf)[:, 0]
+        z[m] = {n: match_signal(model.points, matches, points[held], r.R, r.t, thr) for n, r in poses.items()}
+    own = {m: z[m][m] for m in z}
+    other = {"geometric": "visual", "visual": "geometric"}
+    cross = {m: z[m][other[m]] for m in z}
+    agree = any(c >= params.signal_none for c in cross.values())
+    if agree or all(o < params.signal_none for o in own.values()):
+        w = {m: modality_weight(max(own[m], cross[m]), params.signal_none, params.signal_full) for m in z}
+        if not any(w.values()):
+            w = {m: 1.0 for m in z}
+    else:  # both have signal but neither's matches agree with the other's pose: trust the stronger
+        strong = max(own, key=own.get)
+        w = {m: float(m == strong) for m in z}
+    return CoarseResult(found, w["geometric"], w["visual"], own["geometric"], own["visual"], agree)
 
 
 def coarse_pose(model: MatchableModel, points: np.ndarray, geometric: np.ndarray, visual: np.ndarray, diameter: float,
                 params: RegisterParams, seed: int):
-    """Coarse model-to-camera pose of a candidate's points (k, 3) mm with their geometric
-    (k, G) and visual (k, C) features: fused with the model's basis, matched, RANSAC
+    """The paper's coarse pose of a candidate's points (k, 3) mm with their geometric
+    (k, G) and visual (k, C) features: fused at equal weights, matched, RANSAC
     (:func:`pipeline.registration.ransac.ransac_align`). Returns its ``Registration``."""
     from pipeline.registration.fusion import apply_pca, fuse
     from pipeline.registration.ransac import RansacParams, ransac_align
@@ -221,31 +397,41 @@ def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarra
                         model_of: Callable[[int], MatchableModel], diameters: Mapping[int, float],
                         params: RegisterParams, seed_of: Callable[[int], int],
                         progress: Progress = _noop) -> tuple[pd.DataFrame, dict[int, float]]:
-    """Coarse poses of a scene's candidates.
+    """Coarse hypotheses of a scene's candidates (:func:`coarse_hypotheses`).
 
     candidates: scene_features' table (cand_id, scene_id, im_id, obj_id, score, status,
     reason, n_points); arrays: its ``features.zarr`` (see :func:`pack_candidates`);
     model_of(obj_id): the object's :class:`MatchableModel`; seed_of(cand_id): the RANSAC
-    seed. Returns the table (:data:`REGISTER_COLUMNS`; skipped candidates keep their
-    status and reason) and the registration time per image (s).
+    seed. Returns the table (:data:`REGISTER_COLUMNS`, one row per hypothesis; a skipped
+    candidate has one row, hyp 0, with its status and reason; ``time_s``, the
+    candidate's time, is on its first row, 0 on the others) and the registration time
+    per image (s).
     """
     pos = {int(c): i for i, c in enumerate(arrays["cand_id"])}
     rows = []
     image_time: dict[int, float] = {}
     for c in candidates.itertuples(index=False):
         row = {"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id), "obj_id": int(c.obj_id),
-               "prior_score": float(c.score), "status": c.status, "reason": c.reason}
-        if c.status == "ok":
-            t0 = time.perf_counter()
-            i, k = pos[int(c.cand_id)], int(c.n_points)
-            reg = coarse_pose(model_of(int(c.obj_id)), arrays["points"][i, :k], arrays["geometric"][i, :k],
-                              arrays["visual"][i, :k], diameters[int(c.obj_id)], params, seed_of(int(c.cand_id)))
-            dt = time.perf_counter() - t0
-            image_time[int(c.im_id)] = image_time.get(int(c.im_id), 0.0) + dt
-            row.update({"R": _flat(reg.R, 9), "t": _flat(reg.t, 3), "n_inliers": int(reg.n_inliers),
-                        "inlier_ratio": float(reg.inlier_ratio), "fitness": float(reg.fitness),
-                        "n_correspondences": int(reg.n_correspondences), "time_s": dt})
-        rows.append(row)
+               "prior_score": float(c.score), "status": c.status, "reason": c.reason, "hyp": 0, "source": ""}
+        if c.status != "ok":
+            rows.append(row)
+            progress()
+            continue
+        t0 = time.perf_counter()
+        i, k = pos[int(c.cand_id)], int(c.n_points)
+        res = coarse_hypotheses(model_of(int(c.obj_id)), arrays["points"][i, :k], arrays["geometric"][i, :k],
+                                arrays["visual"][i, :k], diameters[int(c.obj_id)], params, seed_of(int(c.cand_id)))
+        dt = time.perf_counter() - t0
+        image_time[int(c.im_id)] = image_time.get(int(c.im_id), 0.0) + dt
+        for j, h in enumerate(res.hypotheses):
+            reg = h.registration
+            rows.append({**row, "hyp": j, "source": h.source, "source_rank": h.rank,
+                         "w_geometric": res.w_geometric, "w_visual": res.w_visual,
+                         "signal_geometric": res.signal_geometric, "signal_visual": res.signal_visual,
+                         "modalities_agree": res.agree,
+                         "R": _flat(reg.R, 9), "t": _flat(reg.t, 3), "n_inliers": int(reg.n_inliers),
+                         "inlier_ratio": float(reg.inlier_ratio), "fitness": float(reg.fitness),
+                         "n_correspondences": int(reg.n_correspondences), "time_s": dt if j == 0 else 0.0})
         progress()
     return pd.DataFrame(rows, columns=REGISTER_COLUMNS), image_time
 
@@ -267,19 +453,124 @@ def pca_arrays(models: Mapping[int, MatchableModel]) -> dict[str, np.ndarray]:
 # ------------------------------------------------------------------ refinement and choice
 
 
+@dataclass(frozen=True)
+class SceneImages:
+    """What refinement needs of a scene, loaded when asked: rgb(im_id) (H, W, 3) uint8,
+    depth(im_id) (H, W) float32 mm (0 = no depth), K(im_id) (3, 3), mesh(obj_id)
+    (trimesh, mm), candidate(cand_id) -> (bbox (x, y, w, h) px, mask (H, W) bool)."""
+
+    rgb: Callable[[int], np.ndarray]
+    depth: Callable[[int], np.ndarray]
+    K: Callable[[int], np.ndarray]
+    mesh: Callable[[int], Any]
+    candidate: Callable[[int], tuple[tuple[float, float, float, float], np.ndarray]]
+
+
+class PoseVerifier:
+    """Verification (:mod:`pipeline.registration.verification`) of poses in the images of
+    one scene: one renderer, one image's depth and the candidates' masks kept while
+    they are asked for in turn. Use as a context manager (it holds an EGL context)."""
+
+    def __init__(self, images: SceneImages, params: RefineParams):
+        self.images, self.params = images, params
+        self._renderer = None
+        self._depth: tuple[int, np.ndarray] | None = None
+        self._cand: tuple[int, Any] | None = None
+
+    def __enter__(self) -> "PoseVerifier":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+
+    def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray, diameter: float,
+                 evidence: float):
+        from pipeline.registration.verification import verification_window, verify_pose
+        from pipeline.render import Renderer
+
+        if self._depth is None or self._depth[0] != im_id:
+            self._depth = (im_id, self.images.depth(im_id))
+        depth = self._depth[1]
+        if self._renderer is None:
+            self._renderer = Renderer(depth.shape[1], depth.shape[0], znear=1.0, zfar=100000.0)
+        if not self._renderer.has_mesh(obj_id):
+            self._renderer.add_mesh(obj_id, self.images.mesh(obj_id))
+        if self._cand is None or self._cand[0] != cand_id:
+            self._cand = (cand_id, self.images.candidate(cand_id))
+        bbox, mask = self._cand[1]
+        tol = max(self.params.verify_min_tol_mm, self.params.verify_tol_frac * diameter)
+        window = verification_window(bbox, depth.shape, self.params.verify_margin)
+        return verify_pose(self._renderer, obj_id, R, t, self.images.K(im_id), depth, mask, window, tol, evidence)
+
+
+class FineIcp:
+    """The fine ICP of a candidate's chosen pose: up to ``params.fine_icp_points`` of the
+    candidate's depth points (mask and valid depth, outliers removed; every one, not
+    scene_features' M samples) against ``params.fine_icp_model_points`` samples of the
+    model's surface, with the coarse-to-fine schedule of the hypotheses' ICP. One image's
+    depth and each object's samples are kept while asked for in turn.
+
+    Only objects in ``objects`` (those without shape symmetries) are refined: along a
+    shape symmetry depth constrains nothing, and the longer ICP drifts where the visual
+    features had placed the texture (on ``synthtiny`` the textured cans and cups turned
+    15-20 degrees about their axes and AR fell from 0.82 to 0.74); the pose is then left
+    to SAR."""
+
+    def __init__(self, images: SceneImages, params: RefineParams, objects: set[int]):
+        self.images, self.params, self.objects = images, params, set(objects)
+        self._depth: tuple[int, np.ndarray] | None = None
+        self._models: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray,
+                 diameter: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The fine pose (R (3, 3), t (3,) mm), or None when the object is not refined."""
+        from pipeline.geometry.icp import refine_icp
+        from pipeline.geometry.sampling import sample_surface
+
+        if obj_id not in self.objects:
+            return None
+        if self._depth is None or self._depth[0] != im_id:
+            self._depth = (im_id, self.images.depth(im_id))
+        if obj_id not in self._models:
+            self._models[obj_id] = sample_surface(self.images.mesh(obj_id), self.params.fine_icp_model_points,
+                                                  seed=obj_id)
+        _, mask = self.images.candidate(cand_id)
+        pts, _ = candidate_points(self._depth[1], self.images.K(im_id), mask, diameter)
+        if len(pts) < 3:
+            return None
+        pts = pts[sample_candidate(len(pts), self.params.fine_icp_points, seed=cand_id)]
+        points, normals = self._models[obj_id]
+        res = refine_icp(points, normals, pts, R, t, diameter, max_corr_dist_frac=self.params.max_corr_frac,
+                         iterations=self.params.iterations, point_to_plane=self.params.point_to_plane)
+        return res.R, res.t
+
+
 def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np.ndarray],
                       model_of: Callable[[int], Mapping[str, np.ndarray]], diameters: Mapping[int, float],
-                      params: RefineParams, progress: Progress = _noop) -> tuple[pd.DataFrame, dict[int, float]]:
-    """ICP of every registered candidate (register's rows with status ``ok``).
+                      params: RefineParams, verify: Callable[..., Any] | None = None,
+                      fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None,
+                      progress: Progress = _noop) -> tuple[pd.DataFrame, pd.DataFrame, dict[int, float]]:
+    """ICP and verification of every coarse hypothesis (register's rows with status
+    ``ok``), and each candidate's best hypothesis.
 
     scene_points(cand_id): the candidate's sampled points (k, 3) mm; model_of(obj_id):
-    the model's ``points`` and ``normals`` (N, 3). With ``params.icp`` off the RANSAC
-    pose and fitness are kept. Returns the table (:data:`CANDIDATE_COLUMNS`: refined R,
-    t, ICP fitness and inlier_rmse (mm), the evidence
-    :func:`pipeline.registration.selection.registration_evidence`) and the time per image (s).
+    the model's ``points`` and ``normals`` (N, 3); verify: a :class:`PoseVerifier` (None:
+    no verification, its terms NaN). With ``params.icp`` off the RANSAC pose and fitness
+    are kept. Each hypothesis gets its evidence
+    (:func:`pipeline.registration.selection.registration_evidence`) and verification;
+    a candidate's hypotheses are ranked like a target's candidates (``params.select_by``,
+    ties by order) and the first is the candidate's pose. fine: a :class:`FineIcp` (None:
+    off), which refines that pose again on denser points; the fine pose replaces it
+    (``fine_icp`` True) unless its verification score is lower.
+
+    Returns the hypotheses (:data:`HYPOTHESIS_COLUMNS`, ``chosen`` marking each
+    candidate's), the candidates (:data:`CANDIDATE_COLUMNS`: the chosen hypothesis'
+    pose, ICP fitness and inlier_rmse (mm), evidence, verification terms) and the time
+    per image (s).
     """
     from pipeline.geometry.icp import refine_icp
-    from pipeline.registration.selection import registration_evidence
+    from pipeline.registration.selection import RANK_COLUMNS, registration_evidence
 
     rows = []
     image_time: dict[int, float] = {}
@@ -294,14 +585,50 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
                              max_corr_dist_frac=params.max_corr_frac, iterations=params.iterations,
                              point_to_plane=params.point_to_plane)
             R, t, fitness, rmse = res.R, res.t, float(res.fitness), float(res.inlier_rmse)
+        evidence = registration_evidence(c.inlier_ratio, fitness)
+        terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
+        if verify is not None:
+            v = verify(int(c.im_id), int(c.cand_id), obj_id, R, t, diameters[obj_id], evidence)
+            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
         dt = time.perf_counter() - t0
         image_time[int(c.im_id)] = image_time.get(int(c.im_id), 0.0) + dt
         rows.append({"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id), "obj_id": obj_id,
-                     "prior_score": float(c.prior_score), "n_inliers": int(c.n_inliers),
-                     "inlier_ratio": float(c.inlier_ratio), "R": _flat(R, 9), "t": _flat(t, 3), "fitness": fitness,
-                     "inlier_rmse": rmse, "evidence": registration_evidence(c.inlier_ratio, fitness), "time_s": dt})
+                     "hyp": int(c.hyp), "source": str(c.source), "prior_score": float(c.prior_score),
+                     "n_inliers": int(c.n_inliers), "inlier_ratio": float(c.inlier_ratio), "R": _flat(R, 9),
+                     "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms,
+                     "time_s": dt})
         progress()
-    return pd.DataFrame(rows, columns=CANDIDATE_COLUMNS), image_time
+    hyps = pd.DataFrame(rows, columns=HYPOTHESIS_COLUMNS[:-1])
+    key = RANK_COLUMNS[params.select_by]
+    if key == "verification" and verify is None:
+        raise ValueError("refine: select_by 'verification' needs the verifier")
+    order = hyps.sort_values(["cand_id", key, "evidence", "hyp"], ascending=[True, False, False, True],
+                             na_position="last")
+    best = order.groupby("cand_id", sort=False).head(1).index
+    hyps["chosen"] = hyps.index.isin(best)
+    cands = hyps[hyps.chosen].sort_values("cand_id").reset_index(drop=True)
+    cand_time = hyps.groupby("cand_id").time_s.sum()
+    cands = cands.assign(time_s=cands.cand_id.map(cand_time).astype(float), fine_icp=False)
+    if fine is not None:
+        for i in cands.index:
+            t0 = time.perf_counter()
+            c = cands.loc[i]
+            obj_id, im_id = int(c.obj_id), int(c.im_id)
+            pose = fine(im_id, int(c.cand_id), obj_id, np.reshape(c.R, (3, 3)), np.asarray(c.t), diameters[obj_id])
+            if pose is None:
+                continue
+            R, t = pose
+            v = verify(im_id, int(c.cand_id), obj_id, R, t, diameters[obj_id], float(c.evidence)) if verify else None
+            if v is None or v.score >= c.verification:
+                cands.at[i, "R"], cands.at[i, "t"], cands.at[i, "fine_icp"] = _flat(R, 9), _flat(t, 3), True
+                if v is not None:
+                    for k in VERIFICATION_COLUMNS[:-1]:
+                        cands.at[i, k] = getattr(v, k)
+                    cands.at[i, "verification"] = v.score
+            dt = time.perf_counter() - t0
+            cands.at[i, "time_s"] += dt
+            image_time[im_id] = image_time.get(im_id, 0.0) + dt
+    return hyps, cands[CANDIDATE_COLUMNS], image_time
 
 
 def choose_estimates(refined: pd.DataFrame, targets: Sequence[Any], diameters: Mapping[int, float],
@@ -336,19 +663,7 @@ def sar_transforms(estimated, declared, diameter: float, params: RefineParams) -
     return np.stack(variants)
 
 
-@dataclass(frozen=True)
-class SarImages:
-    """What SAR needs of a scene, loaded when asked: rgb(im_id) (H, W, 3) uint8, K(im_id)
-    (3, 3), mesh(obj_id) (trimesh, mm), candidate(cand_id) -> (bbox (x, y, w, h) px,
-    mask (H, W) bool)."""
-
-    rgb: Callable[[int], np.ndarray]
-    K: Callable[[int], np.ndarray]
-    mesh: Callable[[int], Any]
-    candidate: Callable[[int], tuple[tuple[float, float, float, float], np.ndarray]]
-
-
-def refine_by_symmetry(poses: pd.DataFrame, transforms: Mapping[int, np.ndarray], images: SarImages, vis,
+def refine_by_symmetry(poses: pd.DataFrame, transforms: Mapping[int, np.ndarray], images: SceneImages, vis,
                        params: RefineParams, crop_margin: float, image_mode: str, image_time: dict[int, float],
                        progress: Callable[[int], Progress] | None = None) -> list[dict]:
     """Symmetry-aware refinement (:func:`pipeline.refinement.sar.symmetry_aware_refinement`)

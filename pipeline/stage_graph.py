@@ -136,18 +136,20 @@ _SPECS = (
         keyed_by=("segment_prior", "dataset"), algorithm="pipeline.scene_side.scene_features",
         summary="lifted points and features of every candidate of one scene"),
     StageSpec(
-        "register", 3, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
+        "register", 4, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
         writes={"scene": ("candidates.parquet", "images.parquet", "pca.zarr")},
         keyed_by=("model_features", "scene_features"), algorithm="pipeline.scene_side.register_candidates",
-        summary="coarse pose of every candidate of one scene (RANSAC on fused features)"),
+        summary="coarse pose hypotheses of every candidate of one scene (RANSAC on weighted fused features and on "
+                "each modality's own)"),
     StageSpec(
-        "refine", 3, ("scene", "all"),
+        "refine", 4, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
                "all": ("refine", "scene_features", "register", "segment_prior")},
-        writes={"scene": ("candidates.parquet", "poses.parquet", "sar.parquet", "images.parquet"),
+        writes={"scene": ("candidates.parquet", "hypotheses.parquet", "poses.parquet", "sar.parquet",
+                          "images.parquet"),
                 "all": ("{results_csv}",)},
         keyed_by=("register", "symmetries"), algorithm="pipeline.scene_side.refine_candidates",
-        summary="ICP of every candidate, the estimates chosen per target, SAR; item 'all': the BOP results CSV"),
+        summary="ICP and verification of every hypothesis, the estimates chosen per target, SAR; item 'all': the BOP results CSV"),
     StageSpec(
         "score", 2, ("all",), reads={"all": ("refine", "dataset")}, writes={"all": ("errors.parquet", "scores.json")},
         keyed_by=("refine", "dataset"), algorithm="pipeline.metrics.score_results_file",

@@ -1,17 +1,22 @@
-"""Stage refine: ICP of every registered candidate, the choice of the estimates per
-target, symmetry-aware refinement (SAR), and (item ``all``) the BOP results CSV
-``<method>_<dataset>-<split>.csv`` of the whole dataset.
+"""Stage refine: ICP and verification of every coarse hypothesis, each candidate's best,
+the choice of the estimates per target, symmetry-aware refinement (SAR), and (item
+``all``) the BOP results CSV ``<method>_<dataset>-<split>.csv`` of the whole dataset.
 
 Per scene (algorithm: :func:`pipeline.scene_side.refine_candidates`,
 :func:`~pipeline.scene_side.choose_estimates`, :func:`~pipeline.scene_side.refine_by_symmetry`):
 
-- ``candidates.parquet``: every registered candidate with its refined pose (R as 9
-  row-major floats, t mm), ICP fitness and inlier_rmse (mm), the RANSAC n_inliers and
-  inlier_ratio, prior_score, ``evidence`` (inlier ratio x ICP fitness), and the choice:
-  selected, rank (0 = best kept), note (why not kept).
+- ``hypotheses.parquet``: every hypothesis after ICP: its pose, ICP fitness and
+  inlier_rmse (mm), the RANSAC n_inliers and inlier_ratio, ``evidence`` (inlier ratio x
+  ICP fitness), the verification terms (silhouette, depth_fit, coverage, free_space)
+  and score (``verification``), and ``chosen`` (its candidate's best).
+- ``candidates.parquet``: every registered candidate with its chosen hypothesis (hyp,
+  source), its pose after the fine ICP (``fine_icp``: whether that pose was kept), the
+  same columns, prior_score, and the choice: selected, rank (0 = best kept), note (why
+  not kept).
 - ``poses.parquet``: the kept estimates (up to ``inst_count`` distinct ones per target,
-  ranked by ``refine.select_by``): scene_id, im_id, obj_id, cand_id, R, t, score (the
-  ranking value, written to the CSV), evidence, fitness, inlier_rmse, n_inliers,
+  ranked by ``refine.select_by``): scene_id, im_id, obj_id, cand_id, hyp, source, R, t,
+  score (the ranking value, written to the CSV), evidence, verification, fitness,
+  inlier_rmse, n_inliers,
   sar_variant (index of the chosen symmetric variant, 0 = the ICP pose, -1 = no SAR)
   and sar_reason (why SAR did not run, if it did not).
 - ``sar.parquet``: per estimate that went through SAR, one row per symmetric variant
@@ -40,8 +45,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.model_side import read_symmetries
     from pipeline.plan import build_encoders
     from pipeline.progress import progress_bar
-    from pipeline.scene_side import (POSE_COLUMNS, SAR_COLUMNS, SarImages, choose_estimates, refine_by_symmetry,
-                                     refine_candidates, sar_transforms, time_table)
+    from pipeline.scene_side import (POSE_COLUMNS, SAR_COLUMNS, FineIcp, PoseVerifier, SceneImages, choose_estimates,
+                                     refine_by_symmetry, refine_candidates, sar_transforms, time_table)
 
     io = plan.io("refine", item)
     scene_id, p = io.item_id(), io.params
@@ -65,25 +70,31 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         i = pos[cand_id]
         return scene["points"][i, :int(scene["n_points"][i])]
 
-    with progress_bar(f"refine {item}", total=len(registered), enabled=progress) as bar:
-        refined, image_time = refine_candidates(registered, scene_points, model_of, diameters, p, bar.advance)
+    boxes = read_table(io.input_dir("segment_prior") / "candidates.parquet")
+    boxes = boxes[boxes.scene_id == scene_id].set_index("cand_id")
+    cams = bop.scene_camera(scene_id)
+
+    def candidate(cand_id: int):
+        b = boxes.loc[cand_id]
+        mask = rle_decode({"counts": list(b.rle_counts), "size": [int(b.height), int(b.width)]})
+        return (b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h), mask
+
+    images = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
+                         depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
+                         mesh=bop.load_model, candidate=candidate)
+    with progress_bar(f"refine {item}", total=len(registered), enabled=progress) as bar, \
+            PoseVerifier(images, p) as verify:
+        asymmetric = {o for o in set(registered.obj_id.astype(int))
+                      if read_symmetries(io.input_dir("symmetries", obj_item(o)) / "symmetries.json").is_trivial}
+        fine = FineIcp(images, p, asymmetric) if p.icp and p.fine_icp_points else None
+        hypotheses, refined, image_time = refine_candidates(registered, scene_points, model_of, diameters, p, verify,
+                                                            fine, bar.advance)
     table, poses = choose_estimates(refined, targets, diameters, p)
     sar_rows: list[dict] = []
     if len(poses):
         transforms = {o: sar_transforms(read_symmetries(io.input_dir("symmetries", obj_item(o)) / "symmetries.json"),
                                         SymmetrySet.from_model_info(infos[o]), infos[o].diameter, p)
                       for o in sorted(set(poses.obj_id.astype(int)))}
-        boxes = read_table(io.input_dir("segment_prior") / "candidates.parquet")
-        boxes = boxes[boxes.scene_id == scene_id].set_index("cand_id")
-        cams = bop.scene_camera(scene_id)
-
-        def candidate(cand_id: int):
-            b = boxes.loc[cand_id]
-            mask = rle_decode({"counts": list(b.rle_counts), "size": [int(b.height), int(b.width)]})
-            return (b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h), mask
-
-        images = SarImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id), K=lambda im_id: cams[im_id].K,
-                           mesh=bop.load_model, candidate=candidate)
         vis = build_encoders(plan.run)[1] if p.sar else None
         with progress_bar(f"SAR {item}", total=len(poses), enabled=progress) as bar:
             sar_rows = refine_by_symmetry(poses, transforms, images, vis, p, plan.run.stages.scene_features.crop_margin,
@@ -91,11 +102,13 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                                           lambda n: bar.set_total(n) or bar.advance)
     with io.publish() as w:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
+        write_table(hypotheses, w.dir / "hypotheses.parquet", metadata={"key": io.out.key})
         write_table(poses[POSE_COLUMNS].reset_index(drop=True), w.dir / "poses.parquet", metadata={"key": io.out.key})
         write_table(pd.DataFrame(sar_rows, columns=SAR_COLUMNS), w.dir / "sar.parquet", metadata={"key": io.out.key})
         write_table(time_table(scene_id, image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
         w.summary.update({
-            "scene_id": scene_id, "n_candidates": int(len(table)), "n_poses": int(len(poses)),
+            "scene_id": scene_id, "n_candidates": int(len(table)), "n_hypotheses": int(len(hypotheses)),
+            "n_poses": int(len(poses)),
             "mean_fitness": float(poses.fitness.mean()) if len(poses) else None,
             "n_duplicates": int(table.note.str.startswith("duplicate").sum()),
             "n_sar": int((poses.sar_variant >= 0).sum()), "n_sar_changed": int((poses.sar_variant > 0).sum()),

@@ -1,7 +1,13 @@
-"""Stage register: coarse pose of every candidate of one scene by RANSAC on fused features.
+"""Stage register: coarse pose hypotheses of every candidate of one scene, by RANSAC on
+each modality's own matches, on the paper's fused matches and on the matches fused with
+each modality's measured weight.
 
-``candidates.parquet``: one row per candidate with status, the RANSAC pose (R as 9
-row-major floats, t mm), n_inliers, inlier_ratio, fitness, n_correspondences, time_s.
+``candidates.parquet``: one row per hypothesis (a skipped candidate: one row with its
+status and reason): cand_id, hyp (0, 1, ...), source (geometric, visual, fused,
+weighted), source_rank, the candidate's fusion weights w_geometric, w_visual and the
+held-out signals (z-scores) they came from, signal_geometric, signal_visual, the RANSAC
+pose (R as 9 row-major floats, t mm), n_inliers, inlier_ratio, fitness,
+n_correspondences, time_s (the candidate's, on its first row).
 ``images.parquet``: registration time per image (s).
 ``pca.zarr``: the per-object PCA bases used (obj_id (K,), mean (K, C), components
 (K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual

@@ -90,7 +90,9 @@ def test_short_encoder_keys_none_and_weights_dir(tmp_path):
 # version, parameters or upstreams change, which reruns the stage and everything after
 # it; update this table deliberately when that is intended, and say why in the commit.
 # refine 3 (ICP on one thread, bit-reproducible) changed refine's and score's keys; the
-# declaration of the stage graph and the renames changed none.
+# declaration of the stage graph and the renames changed none. register 4 and refine 4
+# (hypotheses, modality weights, verification, fine ICP; issue 13) changed register's,
+# refine's and score's.
 MAIN_JOB_KEYS = {
     "synth": "42e22634980724b4b02cc270abefe72cd6af6e03",
     "render_templates": "4c687dcea59bf855850770f05da8aafca91cd386",
@@ -98,23 +100,24 @@ MAIN_JOB_KEYS = {
     "model_features": "ed46f2a57508857849305f0fa7847a1bb0ad85fe",
     "segment_prior": "cb98a60a90478c1373a838b74f1b032f44df3b57",
     "scene_features": "1fb7016d520a9e4c243b2714fd6d0fd53bc3c6e0",
-    "register": "8f2fd72de812b65121fb20dc88fde7fa902642d5",
-    "refine": "83dd779f5544bd6da6069066d70522bf3e337450",
-    "score": "0acc233dbf58ce73565301f110e5c946bb06b7e3",
+    "register": "82dda53c4ad3176fe7530337eb8a28baf40d69c6",
+    "refine": "9d6c72e901d23f6c4072a460fcc7069b191db934",
+    "score": "ae70e30a780f667628d86670f50203ebea6b8983",
 }
 
 
 def test_main_job_keys_are_pinned():
     plan = RunPlan(cfg.load_run({}))["synthmini"]
     assert {s: sp.key for s, sp in plan.stages.items()} == MAIN_JOB_KEYS
-    assert plan["refine"].signature == "icp+sar-byscore-83dd779f"
+    assert plan["refine"].signature == "icp+sar-byverification-9d6c72e9"
 
 
 def test_renamed_values_keep_their_keys():
     """select_by 'score' was renamed 'evidence'; both spellings are accepted and hash alike."""
-    new = cfg.load_run({"datasets": "synthtiny"})
+    data = cfg.load_run({"datasets": "synthtiny"}).model_dump()
+    data["stages"]["refine"]["select_by"] = "evidence"
+    new = cfg.RunManifest.model_validate(data)
     assert new.stages.refine.select_by == "evidence"
-    data = new.model_dump()
     data["stages"]["refine"]["select_by"] = "score"
     old = cfg.RunManifest.model_validate(data)
     assert old.stages.refine.select_by == "evidence"

@@ -180,12 +180,20 @@ def test_report_holds_the_scores_tables_and_images(tiny_report):
     shares = [float(r["share"].rstrip("%")) for r in timing.values()]
     assert sum(shares) == pytest.approx(100, abs=0.5)
 
-    # Images: the visibility plot, the timing chart, the samples, one SAR figure per object.
+    # Hypotheses: per source, as many as refine's hypotheses.parquet holds, and those chosen.
+    hyps = pd.concat([pd.read_parquet(p) for p in _artifact(work, "refine", "*/scene_*/hypotheses.parquet")])
+    rows = {r["source"]: r for r in page.tables["hypotheses"]}
+    assert set(rows) == set(hyps.source)
+    for source, g in hyps.groupby("source"):
+        assert rows[source]["hypotheses"] == str(len(g)) and rows[source]["chosen"] == str(int(g.chosen.sum()))
+    assert {int(r["obj_id"]) for r in page.tables["modality-signal"]} <= set(hyps.obj_id.astype(int))
+
+    # Images: the visibility plot, the timing chart, the samples, the hypotheses, one SAR figure per object.
     sar_objs = set()
     for p in _artifact(work, "refine", "*/scene_*/sar.parquet"):
         sar_objs |= set(pd.read_parquet(p).obj_id.astype(int))
     n_samples = min(SAMPLES, len(best))
-    assert len(page.images) == 2 + n_samples + len(sar_objs)
+    assert len(page.images) == 2 + n_samples + 1 + len(sar_objs)
     sizes = []
     from PIL import Image
 
@@ -231,6 +239,33 @@ def test_report_command_names_the_missing_scores(tiny_report):
                                 env={**env, "FREEZE_RUN_JSON": other.to_json()})
     assert result.exit_code == 2
     assert str(missing) in result.output
+
+
+@pytest.mark.slow
+def test_show_hypotheses_draws_each_hypothesis_of_a_candidate(tiny_report, tmp_path):
+    work, _, _ = tiny_report
+    env = {"FREEZE_CACHE": str(work / "cache"), "PYOPENGL_PLATFORM": "egl", "FREEZE_RUN_JSON": None}
+    hyps = pd.concat([pd.read_parquet(p) for p in _artifact(work, "refine", "*/scene_*/hypotheses.parquet")])
+    cand = int(hyps.groupby("cand_id").size().idxmax())
+    result = CliRunner().invoke(_app(), ["show", "hypotheses", "--dataset", "synthtiny", "--scene", "1",
+                                         "--candidate", str(cand), "--out", str(tmp_path)], env=env)
+    assert result.exit_code == 0, result.output
+    png = tmp_path / f"hypotheses_synthtiny_scene_000001_cand_{cand}.png"
+    from PIL import Image
+
+    with Image.open(png) as im:  # one panel per hypothesis, side by side
+        n = int((hyps.cand_id == cand).sum())
+        assert im.width >= 240 * n and im.height >= 240
+    from pipeline.config import load_run
+    from pipeline.plan import RunPlan
+    from pipeline.report.hypotheses_figure import hypothesis_cases
+
+    plan = RunPlan(load_run({"datasets": "synthtiny"}), cache=work / "cache")["synthtiny"]
+    (case,) = hypothesis_cases(plan, scene_id=1, cand_id=cand)
+    assert len(case.panels) == n and sum(p.chosen for p in case.panels) == 1
+    result = CliRunner().invoke(_app(), ["show", "hypotheses", "--dataset", "synthtiny", "--candidate", "99999",
+                                         "--out", str(tmp_path)], env=env)
+    assert result.exit_code == 2 and "candidate 99999 has no hypotheses" in result.output
 
 
 CHECK_SCRIPT = """<script>

@@ -26,7 +26,9 @@ def candidate_record(plan, frame) -> dict[str, Any]:
     Keys: R (3, 3) and t (3,) mm model-to-camera, evidence (RANSAC inlier ratio x ICP
     fitness), n_inliers, inlier_ratio, ransac_fitness, n_correspondences, fitness (ICP),
     inlier_rmse_mm, sar_variant / sar_reason / sar_n_variants / sar_scores, n_valid_points,
-    n_points, coarse and icp poses, and the symmetry counts. Raises EstimateError, with
+    n_points, the chosen hypothesis (its source, verification terms, whether the fine ICP
+    kept its pose, the fusion weights) and every hypothesis' score, coarse and icp poses,
+    and the symmetry counts. Raises EstimateError, with
     the stage's reason, when the candidate was skipped or got no pose.
     """
     from pipeline.store import read_table
@@ -36,8 +38,10 @@ def candidate_record(plan, frame) -> dict[str, Any]:
     if sf.status != "ok":
         raise EstimateError(f"the candidate was skipped: {sf.reason} (scene_features.min_points); check the mask or "
                             "box, the depth image and --depth-scale")
-    reg = _one(read_table(plan["register"].item_dir(scene) / "candidates.parquet"), "register")
     refined = _one(read_table(plan["refine"].item_dir(scene) / "candidates.parquet"), "refine")
+    hyps = read_table(plan["register"].item_dir(scene) / "candidates.parquet")
+    reg = _one(hyps[hyps.hyp == int(refined.hyp)], "register (the chosen hypothesis)")
+    verified = read_table(plan["refine"].item_dir(scene) / "hypotheses.parquet")
     poses = read_table(plan["refine"].item_dir(scene) / "poses.parquet")
     if len(poses) == 0:
         raise EstimateError(f"refine kept no estimate: {refined.note or 'see ' + str(plan['refine'].item_dir(scene))}")
@@ -53,6 +57,13 @@ def candidate_record(plan, frame) -> dict[str, Any]:
         "sar_variant": int(pose.sar_variant), "sar_reason": str(pose.sar_reason),
         "sar_n_variants": int(len(sar)), "sar_scores": [float(s) for s in sar.similarity],
         "n_valid_points": int(sf.n_valid_points), "n_points": int(sf.n_points),
+        "hypothesis": {"source": str(refined.source), "index": int(refined.hyp),
+                       "verification": {k: float(refined[k]) for k in
+                                        ("silhouette", "depth_fit", "coverage", "free_space", "verification")},
+                       "fine_icp": bool(refined.fine_icp),
+                       "fusion_weights": {"geometric": float(reg.w_geometric), "visual": float(reg.w_visual)}},
+        "hypotheses": [{"source": str(h.source), "verification": float(h.verification), "evidence": float(h.evidence),
+                        "chosen": bool(h.chosen)} for h in verified.itertuples()],
         "coarse": {"R": np.asarray(reg.R, float).reshape(3, 3).tolist(), "t": np.asarray(reg.t, float).tolist()},
         "icp": {"R": np.asarray(refined.R, float).reshape(3, 3).tolist(), "t": np.asarray(refined.t, float).tolist()},
         "n_discrete_symmetries": int(sym["n_discrete"]), "n_continuous_symmetries": int(sym["n_continuous"]),

@@ -56,8 +56,13 @@ def box_candidate_points(
        at the box's edge, so it is not removed. Removing it drops the plane's points
        and every point behind it (seen from the camera).
     3. *Cluster.* DBSCAN (``cluster_eps_frac`` x diameter, at least 3 mm) and keep the
-       cluster with most points in the central window (ties: the larger), which drops
-       parts of neighbouring objects that the box overlaps.
+       largest cluster (ties: the one with most points in the central window), which
+       drops parts of neighbouring objects that the box overlaps: a box prior is fitted
+       to its object, which fills most of it. (The cluster with most points in the
+       central window, the former rule, fails on open objects: the centre of the box of
+       the TYO-L basket sees its inside, and that rule kept the inside and the handle,
+       6 % of the kept points within 5 mm of the model at the ground-truth pose; the
+       largest cluster is its front wall and rim, 71 %.)
 
     The scene-side outlier filter of the stages (:func:`pipeline.geometry.depth.remove_outliers`)
     runs afterwards, as for masks.
@@ -107,7 +112,7 @@ def box_candidate_points(
             details["plane_removed"] = True
     details["after_plane"] = int(keep.sum())
 
-    # 3. the cluster at the centre of the box
+    # 3. the largest cluster
     idx = np.flatnonzero(keep)
     if len(idx) >= 10:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[idx].astype(np.float64)))
@@ -116,7 +121,7 @@ def box_candidate_points(
             n_lab = labels.max() + 1
             in_centre = np.bincount(labels[(labels >= 0) & central[idx]], minlength=n_lab)
             sizes = np.bincount(labels[labels >= 0], minlength=n_lab)
-            best = int(np.lexsort((sizes, in_centre))[-1])
+            best = int(np.lexsort((in_centre, sizes))[-1])
             keep[idx[labels != best]] = False
             details.update({"clusters": int(n_lab), "cluster_points": int(sizes[best])})
     details["kept"] = int(keep.sum())

@@ -23,6 +23,7 @@ MSSD-based recall of those objects from 0.27 to 0.37 (two RANSAC seeds).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,14 +106,49 @@ def l2_normalise(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), eps)
 
 
-def fuse(geometric: np.ndarray, visual_reduced: np.ndarray | None, visual_weight: float = 1.0) -> np.ndarray:
-    """(N, G) and (N, V) -> (N, G+V) float32: each part L2-normalised per row, the visual
-    part scaled by ``visual_weight`` (1 in the paper), then concatenated. With
-    ``visual_reduced=None`` this is the normalised geometric part alone."""
-    g = l2_normalise(geometric)
+def fuse(geometric: np.ndarray, visual_reduced: np.ndarray | None, visual_weight: float = 1.0,
+         geometric_weight: float = 1.0) -> np.ndarray:
+    """(N, G) and (N, V) -> (N, G+V) float32: each part L2-normalised per row and scaled
+    by its weight (both 1 in the paper), then concatenated. With ``visual_reduced=None``
+    this is the weighted, normalised geometric part alone."""
+    g = geometric_weight * l2_normalise(geometric)
     if visual_reduced is None:
         return g
     v = np.asarray(visual_reduced)
     if len(v) != len(g):
         raise ValueError(f"fuse: {len(g)} geometric rows but {len(v)} visual rows")
     return np.concatenate([g, visual_weight * l2_normalise(v)], axis=1)
+
+
+def match_signal(model_points: np.ndarray, matches: np.ndarray, scene_points: np.ndarray, R: np.ndarray,
+                 t: np.ndarray, threshold: float) -> float:
+    """How far beyond chance a modality's matches agree with a pose, as a Poisson z-score.
+
+    model_points (N, 3) mm; matches (M,) the model point each scene point's features
+    matched (top-1); scene_points (M, 3) mm camera frame; (R, t) model-to-camera;
+    threshold mm. Inliers: the matches whose model point lands within ``threshold`` of
+    its scene point under the pose. Expected: the inliers random matches would give under
+    the same pose (per scene point, the share of model points within ``threshold`` of
+    where the pose puts it), whatever the object's shape. Returns (inliers - expected) /
+    sqrt(expected + 1): about N(0, 1) for matches without signal, large for matches that
+    carry it.
+    """
+    from scipy.spatial import cKDTree
+
+    mp = np.asarray(model_points, np.float64)
+    sp = np.asarray(scene_points, np.float64)
+    R, t = np.asarray(R, np.float64).reshape(3, 3), np.asarray(t, np.float64).reshape(3)
+    res = mp[np.asarray(matches)] @ R.T + t - sp
+    inliers = int(np.sum(np.sum(res * res, axis=1) < threshold * threshold))
+    in_model = (sp - t) @ R  # scene points in the model frame
+    expected = float(np.sum(cKDTree(mp).query_ball_point(in_model, threshold, return_length=True))) / len(mp)
+    return (inliers - expected) / math.sqrt(expected + 1.0)
+
+
+def modality_weight(signal: float, no_signal: float = 3.0, full_signal: float = 6.0) -> float:
+    """Fusion weight in [0, 1] of a modality whose matches have ``signal``
+    (:func:`match_signal`): 0 up to ``no_signal`` (chance, with a margin for the best of
+    a few noisy draws), rising linearly to 1 at ``full_signal``."""
+    if full_signal <= no_signal:
+        raise ValueError(f"modality_weight: full_signal must exceed no_signal, got {no_signal}, {full_signal}")
+    return float(min(1.0, max(0.0, (signal - no_signal) / (full_signal - no_signal))))

@@ -148,11 +148,15 @@ def _needed_iterations(inlier_ratio: float, confidence: float, n: int = 3) -> fl
 
 
 def _ransac_numpy(
-    src: np.ndarray, dst: np.ndarray, thr: float, params: RansacParams, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """Best (R, t) with dst ~ R src + t over correspondences src, dst (C, 3)."""
+    src: np.ndarray, dst: np.ndarray, thr: float, params: RansacParams, rng: np.random.Generator, pool: int = 1
+) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """The best hypotheses (count, R, t) with dst ~ R src + t over correspondences src,
+    dst (C, 3), most inliers first: the winner, then up to ``pool - 1`` runners-up (the
+    best of each batch). The sampling and the stopping rule depend on the winner only,
+    so the winner is the same whatever ``pool``."""
     C = len(src)
     best_count, best = -1, (np.eye(3), np.zeros(3))
+    kept: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (count, order, R, t)
     done, needed = 0, math.inf
     ratio = params.edge_length_ratio
     pairs = np.array([[0, 1], [1, 2], [2, 0]])
@@ -170,11 +174,17 @@ def _ransac_numpy(
         R, t = kabsch(s[ok], d[ok])
         res = np.einsum("bij,cj->bci", R, src) + t[:, None, :] - dst[None]
         counts = np.sum(np.sum(res * res, axis=-1) < thr2, axis=1)
+        if pool > 1:
+            for j in np.argsort(-counts, kind="stable")[: 4 * pool]:
+                kept.append((int(counts[j]), len(kept), R[j], t[j]))
+            kept = sorted(kept, key=lambda h: (-h[0], h[1]))[: 64 * pool]
         i = int(np.argmax(counts))
         if counts[i] > best_count:
             best_count, best = int(counts[i]), (R[i], t[i])
             needed = _needed_iterations(best_count / C, params.confidence)
-    return best
+    out = [(best_count, best[0], best[1])]
+    out += [(c, R, t) for c, _, R, t in kept if not (R is best[0] or np.array_equal(R, best[0]))]
+    return out
 
 
 def _ransac_open3d(
@@ -205,6 +215,23 @@ def _count_within(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarray
     return np.sum(res * res, axis=1) < thr * thr
 
 
+def distinct_poses(poses: list[tuple[np.ndarray, np.ndarray]], k: int, min_angle_deg: float,
+                   min_trans: float) -> list[int]:
+    """Non-maximum suppression in pose space: indices of up to ``k`` of ``poses`` (R (3, 3),
+    t (3,) mm; best first), each kept one differing from every earlier kept one by more
+    than ``min_angle_deg`` in rotation or ``min_trans`` mm in translation."""
+    from pipeline.geometry.transforms import rotation_angle_deg
+
+    kept: list[int] = []
+    for i, (R, t) in enumerate(poses):
+        if len(kept) >= k:
+            break
+        if all(rotation_angle_deg(poses[j][0], R) > min_angle_deg or np.linalg.norm(poses[j][1] - t) > min_trans
+               for j in kept):
+            kept.append(i)
+    return kept
+
+
 def ransac_align(
     model_points: np.ndarray,
     model_feats: np.ndarray,
@@ -215,11 +242,33 @@ def ransac_align(
     params: RansacParams | None = None,
     seed: int = 0,
 ) -> Registration:
-    """Coarse model-to-camera pose from feature matches.
+    """Coarse model-to-camera pose from feature matches: the best of :func:`ransac_hypotheses`."""
+    return ransac_hypotheses(model_points, model_feats, scene_points, scene_feats, diameter, params=params,
+                             seed=seed, k=1)[0]
+
+
+def ransac_hypotheses(
+    model_points: np.ndarray,
+    model_feats: np.ndarray,
+    scene_points: np.ndarray,
+    scene_feats: np.ndarray,
+    diameter: float,
+    *,
+    params: RansacParams | None = None,
+    seed: int = 0,
+    k: int = 1,
+    nms_deg: float = 30.0,
+    nms_frac: float = 0.2,
+) -> list[Registration]:
+    """Up to ``k`` distinct coarse model-to-camera poses from feature matches, best first.
 
     model_points (N, 3) mm with model_feats (N, D); scene_points (M, 3) mm camera frame
     with scene_feats (M, D) (same feature space, e.g. :func:`fusion.fuse` outputs);
-    diameter: object diameter in mm. Deterministic for a given seed (numpy backend).
+    diameter: object diameter in mm. The first pose is RANSAC's winner; the others are
+    the runners-up that survive non-maximum suppression in pose space
+    (:func:`distinct_poses`: ``nms_deg`` degrees, ``nms_frac`` diameters), each refitted
+    on its inliers. Deterministic for a given seed (numpy backend); the open3d backend
+    gives the winner only.
     """
     params = params or RansacParams()
     mp = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
@@ -235,23 +284,27 @@ def ransac_align(
     corr, top1 = build_correspondences(model_feats, scene_feats, params)
     src, dst = mp[corr[:, 0]], sp[corr[:, 1]]
     if params.backend == "numpy":
-        R, t = _ransac_numpy(src, dst, thr, params, np.random.default_rng(seed))
+        found = _ransac_numpy(src, dst, thr, params, np.random.default_rng(seed), pool=k)
+        found = [found[i] for i in distinct_poses([(R, t) for _, R, t in found], k, nms_deg, nms_frac * diameter)]
     else:
-        R, t = _ransac_open3d(src, dst, thr, params, seed)
-    for _ in range(params.refine_iterations):
-        inl = _count_within(src, dst, R, t, thr)
-        if inl.sum() < 3:
-            break
-        R, t = kabsch(src[inl], dst[inl])
-    top1_in = _count_within(mp[top1], sp, R, t, thr)
-    # Geometric fitness: scene points explained by the posed model surface samples.
-    dist, _ = cKDTree(mp @ R.T + t).query(sp, k=1)
-    n_inliers = int(top1_in.sum())
-    return Registration(
-        R=np.asarray(R, dtype=np.float64),
-        t=np.asarray(t, dtype=np.float64),
-        n_inliers=n_inliers,
-        inlier_ratio=n_inliers / len(sp),
-        fitness=float(np.mean(dist < thr)),
-        n_correspondences=int(len(corr)),
-    )
+        found = [(0, *_ransac_open3d(src, dst, thr, params, seed))]
+    out = []
+    for _, R, t in found:
+        for _ in range(params.refine_iterations):
+            inl = _count_within(src, dst, R, t, thr)
+            if inl.sum() < 3:
+                break
+            R, t = kabsch(src[inl], dst[inl])
+        top1_in = _count_within(mp[top1], sp, R, t, thr)
+        # Geometric fitness: scene points explained by the posed model surface samples.
+        dist, _ = cKDTree(mp @ R.T + t).query(sp, k=1)
+        n_inliers = int(top1_in.sum())
+        out.append(Registration(
+            R=np.asarray(R, dtype=np.float64),
+            t=np.asarray(t, dtype=np.float64),
+            n_inliers=n_inliers,
+            inlier_ratio=n_inliers / len(sp),
+            fitness=float(np.mean(dist < thr)),
+            n_correspondences=int(len(corr)),
+        ))
+    return out

@@ -16,7 +16,8 @@ def registration_evidence(inlier_ratio: float, fitness: float) -> float:
     return float(max(0.0, min(1.0, inlier_ratio)) * max(0.0, min(1.0, fitness)))
 
 
-RANK_COLUMNS = {"evidence": "evidence", "inliers": "n_inliers", "prior": "prior_score", "fitness": "fitness"}
+RANK_COLUMNS = {"verification": "verification", "evidence": "evidence", "inliers": "n_inliers",
+                "prior": "prior_score", "fitness": "fitness"}
 """The column each ranking rule of :func:`select_estimates` sorts by."""
 
 
@@ -32,7 +33,8 @@ def select_estimates(
 
     candidates: one row per registered candidate with scene_id, im_id, obj_id, cand_id,
     t (3 floats, mm), evidence (:func:`registration_evidence`), n_inliers and prior_score.
-    Candidates of a target are taken in order of ``by`` (``"evidence"``: the evidence;
+    Candidates of a target are taken in order of ``by`` (``"verification"``: the
+    verification score, :mod:`pipeline.registration.verification`; ``"evidence"``: the evidence;
     ``"inliers"``: RANSAC inliers, the paper's rule; ``"prior"``: the localisation
     prior's confidence; ``"fitness"``: the ICP fitness alone), ties broken by the
     evidence, inliers and prior score and then cand_id; a candidate

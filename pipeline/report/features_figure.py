@@ -156,7 +156,11 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
         else:
             rows = table[(table.obj_id == obj_id) & (table.status == "ok")].sort_values("cand_id")
         if len(rows):
-            chosen = (s, rows.iloc[0])
+            # the paper's fused hypothesis, whose matches the figure draws (register keeps
+            # several hypotheses per candidate); hyp 0 when the run had one modality
+            first = rows[rows.cand_id == rows.cand_id.iloc[0]]
+            fused = first[first.source == "fused"] if "source" in first else first.iloc[:0]
+            chosen = (s, (fused if len(fused) else first).iloc[0])
             break
     if chosen is None:
         what = f"candidate {cand_id}" if cand_id is not None else f"no registered candidate of object {obj_id}"

@@ -41,6 +41,7 @@ PANEL_MARGIN = 0.3
 
 #: SAR cases shown per object.
 SAR_CASES_PER_OBJECT = 3
+HYPOTHESIS_CASES = 4
 
 METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
 
@@ -316,6 +317,51 @@ def sar_figures(plan, limit: int = SAR_CASES_PER_OBJECT) -> list[tuple[int, byte
     return out
 
 
+def hypothesis_tables(plan) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Per hypothesis source: hypotheses, chosen, mean verification score; per object:
+    candidates, median signal and mean fusion weight of each modality (from register)."""
+    from pipeline.plan import scene_item
+    from pipeline.store import read_table
+
+    hyps, regs = [], []
+    for scene_id in plan.scene_ids:
+        path = plan["refine"].item_dir(scene_item(scene_id)) / "hypotheses.parquet"
+        if path.exists():
+            hyps.append(read_table(path))
+        path = plan["register"].item_dir(scene_item(scene_id)) / "candidates.parquet"
+        if path.exists():
+            regs.append(read_table(path))
+    counts = pd.DataFrame(columns=["source", "hypotheses", "chosen", "mean_score"])
+    if hyps:
+        h = pd.concat(hyps, ignore_index=True)
+        counts = (h.groupby("source").agg(hypotheses=("hyp", "size"), chosen=("chosen", "sum"),
+                                          mean_score=("verification", "mean")).reset_index())
+    weights = pd.DataFrame()
+    if regs:
+        r = pd.concat(regs, ignore_index=True)
+        r = r[(r.status == "ok") & (r.hyp == 0) & r.signal_geometric.notna()]
+        weights = r.groupby("obj_id").agg(
+            candidates=("cand_id", "size"), signal_geometric=("signal_geometric", "median"),
+            signal_visual=("signal_visual", "median"), w_geometric=("w_geometric", "mean"),
+            w_visual=("w_visual", "mean")).reset_index()
+    return counts, weights
+
+
+def hypotheses_png(plan, limit: int = HYPOTHESIS_CASES) -> bytes | None:
+    """PNG of :func:`pipeline.report.hypotheses_figure.draw_hypotheses_figure` for up to
+    ``limit`` candidates, or None when refine recorded no hypotheses."""
+    from pipeline.report.hypotheses_figure import draw_hypotheses_figure, hypothesis_cases
+
+    try:
+        cases = hypothesis_cases(plan, limit=limit)
+    except FileNotFoundError:
+        return None
+    if not cases:
+        return None
+    with tempfile.TemporaryDirectory(prefix="freeze-report-") as tmp:
+        return draw_hypotheses_figure(cases, Path(tmp) / "hypotheses.png").read_bytes()
+
+
 # ---------------------------------------------------------------------------- HTML
 
 CSS = """
@@ -418,6 +464,7 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
     chosen = choose_samples(table, samples)
     panels = draw_samples(plan, chosen)
     sar = sar_figures(plan)
+    hyp_png = hypotheses_png(plan)
     timings = stage_timings(plan)
     enc = rp.encoders
     ds = plan.dataset
@@ -510,8 +557,34 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
             add(f'<figure class="sample {cls}">{_img(p.png, p.caption)}<figcaption>{_e(p.caption)}</figcaption></figure>')
         add("</div>")
 
-    # ---- 5. SAR
-    add("<h2>5. Symmetry-aware refinement</h2>")
+    # ---- 5. hypotheses
+    add("<h2>5. Hypotheses and their verification</h2>")
+    counts, weights = hypothesis_tables(plan)
+    if len(counts):
+        add('<p class="note">Every candidate gets several coarse hypotheses (the RANSAC winners of the geometric and '
+            'of the visual matches, the paper\'s equal fusion, and the fusion weighted by each modality\'s signal), '
+            'each refined by ICP and verified against the sensor\'s depth and the candidate\'s mask; the best '
+            'verified one is the candidate\'s pose.</p>')
+        add(_table(["source", "hypotheses", "chosen", "mean score"],
+                   [[_e(r.source), fmt(r.hypotheses), fmt(r.chosen), fmt(r.mean_score)] for r in counts.itertuples()],
+                   cls="hypotheses", keys=["source", "hypotheses", "chosen", "mean_score"]))
+    if len(weights):
+        add("<h3>Signal of each modality, per object</h3>")
+        add('<p class="note">How far each modality\'s matches agree with a pose beyond chance (median z-score over '
+            'the object\'s candidates, on held-out points) and the mean fusion weight it got (0: dropped).</p>')
+        add(_table(["object", "candidates", "geometric signal", "visual signal", "geometric weight", "visual weight"],
+                   [[str(int(r.obj_id)), fmt(r.candidates), fmt(r.signal_geometric, 1), fmt(r.signal_visual, 1),
+                     fmt(r.w_geometric, 2), fmt(r.w_visual, 2)] for r in weights.itertuples()],
+                   cls="modality-signal",
+                   keys=["obj_id", "candidates", "signal_geometric", "signal_visual", "w_geometric", "w_visual"]))
+    if hyp_png is not None:
+        add(f'<figure class="hypotheses">{_img(hyp_png, "hypotheses")}<figcaption>Candidates whose chosen hypothesis '
+            f'is not the paper\'s fused pose come first. Green: the model\'s depth agrees with the sensor\'s; red: '
+            f'free space (the camera sees behind the model); blue: occluded; grey: no depth; yellow: the mask; the '
+            f'chosen hypothesis is framed in green.</figcaption></figure>')
+
+    # ---- 6. SAR
+    add("<h2>6. Symmetry-aware refinement</h2>")
     if sar:
         add('<p class="note">Per object whose shape has symmetries beyond the declared ones: the scene crop, the ICP '
             'pose, the pose SAR chose, and the similarity of every symmetric variant (chosen one in green). '

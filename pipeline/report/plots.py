@@ -45,6 +45,22 @@ def figure_png(fig, dpi: int = 90) -> bytes:
     return buf.getvalue()
 
 
+def save_figure(fig, out, dpi: int = 80):
+    """Lay the figure out, write it to the PNG ``out`` atomically (no half-written file
+    under that name), close it; returns the path."""
+    from pathlib import Path
+
+    from pipeline.store import atomic_path
+
+    plt = _plt()
+    fig.tight_layout()
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+    return out
+
+
 def image_png(rgb: np.ndarray) -> bytes:
     """An (H, W, 3) uint8 RGB image encoded as PNG."""
     import cv2

@@ -53,6 +53,8 @@ def draw_sar_figure(cases: Sequence[SarCase], out: Path, title: str = "") -> Pat
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from pipeline.report.plots import save_figure
+
     n = max(1, len(cases))
     fig, axes = plt.subplots(n, 4, figsize=(13, 3.2 * n), squeeze=False,
                              gridspec_kw={"width_ratios": [1, 1, 1, 1.4]})
@@ -80,12 +82,7 @@ def draw_sar_figure(cases: Sequence[SarCase], out: Path, title: str = "") -> Pat
             ax.axis("off")
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=80)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, dpi=80)
 
 
 def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:

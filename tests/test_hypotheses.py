@@ -1,0 +1,205 @@
+"""Hypotheses and their verification, with known answers: several distinct RANSAC poses,
+the fusion weight of a modality that is pure noise, the verification score of the true
+pose against its 180-degree flip, and the choice of a candidate's hypothesis."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.config import RefineParams, RegisterParams
+from pipeline.geometry.transforms import random_rotation, rotation_angle_deg
+from pipeline.registration.fusion import match_signal, modality_weight
+from pipeline.registration.ransac import RansacParams, distinct_poses, ransac_align, ransac_hypotheses
+from pipeline.scene_side import coarse_hypotheses, matchable_model, refine_candidates
+
+
+def _problem(seed: int, signal: dict[str, float]):
+    """A 2000-point model and a 600-point noisy partial scene under a known pose, with
+    geometric (32-d) and visual (16-d) features; ``signal[m]`` of the scene points have
+    their model point's feature (plus noise) in modality m, the others random ones."""
+    rng = np.random.default_rng(seed)
+    model = rng.normal(size=(2000, 3)) * [60, 40, 25]
+    R, t = random_rotation(rng), np.array([20.0, -10.0, 650.0])
+    idx = rng.choice(2000, 600, replace=False)
+    scene = model[idx] @ R.T + t + rng.normal(scale=0.5, size=(600, 3))
+    feats, scene_feats = {}, {}
+    for m, dim in (("geometric", 32), ("visual", 16)):
+        f = rng.normal(size=(2000, dim)).astype(np.float32)
+        s = f[idx] + 0.05 * rng.normal(size=(600, dim)).astype(np.float32)
+        wrong = rng.random(600) > signal[m]
+        s[wrong] = rng.normal(size=(wrong.sum(), dim))
+        feats[m], scene_feats[m] = f, s
+    return {"points": model.astype(np.float32), **feats}, scene, scene_feats, R, t
+
+
+def test_match_signal_is_chance_for_random_matches_and_large_for_true_ones():
+    features, scene, sf, R, t = _problem(0, {"geometric": 1.0, "visual": 0.0})
+    rng = np.random.default_rng(1)
+    true = np.argmin(np.linalg.norm(features["points"][None] - ((scene - t) @ R)[:, None], axis=2), axis=1)
+    thr = 0.05 * 250.0
+    assert match_signal(features["points"], true, scene, R, t, thr) > 100
+    chance = [match_signal(features["points"], rng.integers(0, 2000, size=600), scene, R, t, thr) for _ in range(50)]
+    assert abs(np.mean(chance)) < 0.5 and 0.5 < np.std(chance) < 1.5 and max(chance) < 3
+    assert modality_weight(3.0) == 0.0 and modality_weight(4.5) == 0.5 and modality_weight(9.0) == 1.0
+
+
+def test_ransac_hypotheses_are_distinct_and_the_first_is_the_winner():
+    features, scene, sf, R, t = _problem(2, {"geometric": 0.15, "visual": 0.0})
+    params = RansacParams(inlier_frac=0.02)
+    hyps = ransac_hypotheses(features["points"], features["geometric"], scene, sf["geometric"], 250.0, params=params,
+                             seed=1, k=3)
+    best = ransac_align(features["points"], features["geometric"], scene, sf["geometric"], 250.0, params=params, seed=1)
+    assert 2 <= len(hyps) <= 3
+    np.testing.assert_array_equal(hyps[0].R, best.R)  # keeping runners-up does not change the winner
+    assert rotation_angle_deg(hyps[0].R, R) < 0.5 and np.linalg.norm(hyps[0].t - t) < 1.0
+    for i in range(len(hyps)):
+        for j in range(i):
+            assert (rotation_angle_deg(hyps[i].R, hyps[j].R) > 30 or np.linalg.norm(hyps[i].t - hyps[j].t) > 50)
+    assert hyps[0].n_inliers >= max(h.n_inliers for h in hyps[1:])
+    poses = [(np.eye(3), np.zeros(3)), (np.eye(3), np.array([1.0, 0, 0])), (np.eye(3), np.array([100.0, 0, 0]))]
+    assert distinct_poses(poses, 3, 30.0, 50.0) == [0, 2]
+
+
+@pytest.mark.parametrize("noise", ["visual", "geometric"])
+def test_a_modality_of_pure_noise_gets_no_weight(noise):
+    signal = {"geometric": 0.5, "visual": 0.5, noise: 0.0}
+    features, scene, sf, R, t = _problem(3, signal)
+    model = matchable_model(features, pca_dim=64)
+    assert model.modalities == ("geometric", "visual")
+    res = coarse_hypotheses(model, scene, sf["geometric"], sf["visual"], 250.0, RegisterParams(), seed=0)
+    weights = {"geometric": res.w_geometric, "visual": res.w_visual}
+    good = "geometric" if noise == "visual" else "visual"
+    assert weights[noise] == 0.0 and weights[good] == 1.0
+    signals = {"geometric": res.signal_geometric, "visual": res.signal_visual}
+    assert signals[noise] < 3 < 6 < signals[good]
+    by_source = {h.source: h.registration for h in res.hypotheses}
+    # the weighted fusion is the good modality alone: a duplicate of its own pose, dropped
+    assert {"geometric", "visual"} <= set(by_source) <= {"geometric", "visual", "fused"}
+    assert rotation_angle_deg(by_source[good].R, R) < 1.0 and np.linalg.norm(by_source[good].t - t) < 2.0
+    assert rotation_angle_deg(by_source[noise].R, R) > 10.0
+
+
+def test_both_modalities_with_signal_keep_the_papers_fusion():
+    features, scene, sf, R, t = _problem(4, {"geometric": 0.3, "visual": 0.3})
+    res = coarse_hypotheses(matchable_model(features, 64), scene, sf["geometric"], sf["visual"], 250.0,
+                            RegisterParams(), seed=0)
+    assert (res.w_geometric, res.w_visual) == (1.0, 1.0)
+    assert "weighted" not in {h.source for h in res.hypotheses}
+    # every source finds the pose: the later ones repeat the first and are dropped
+    assert res.hypotheses[0].source == "geometric" and rotation_angle_deg(res.hypotheses[0].registration.R, R) < 1.0
+    assert all(rotation_angle_deg(h.registration.R, R) > 5.0 for h in res.hypotheses[1:])
+
+
+def test_refine_picks_each_candidates_best_verified_hypothesis():
+    rows = []
+    for cand_id in (0, 1):
+        for hyp in range(3):
+            rows.append({"cand_id": cand_id, "scene_id": 1, "im_id": 0, "obj_id": 1, "prior_score": 0.9, "hyp": hyp,
+                         "source": ["geometric", "visual", "fused"][hyp], "n_inliers": 10, "inlier_ratio": 0.1,
+                         "R": np.eye(3).ravel().tolist(), "t": [0.0, 0.0, 500.0 + 10 * hyp], "fitness": 0.9})
+    registered = pd.DataFrame(rows)
+    scores = {(0, 510.0): 0.8, (1, 500.0): 0.7}  # candidate 0: hypothesis 1; candidate 1: hypothesis 0
+
+    class Verify:
+        def __call__(self, im_id, cand_id, obj_id, R, t, diameter, evidence):
+            from pipeline.registration.verification import Verification
+
+            s = scores.get((cand_id, float(t[2])), 0.1)
+            return Verification(s, s, s, 0.0, evidence, s)
+
+    hyps, cands, _ = refine_candidates(registered, lambda c: None, lambda o: None, {1: 100.0},
+                                       RefineParams(icp=False), Verify())
+    assert len(hyps) == 6 and hyps.chosen.sum() == 2
+    assert cands.set_index("cand_id").hyp.to_dict() == {0: 1, 1: 0}
+    assert cands.set_index("cand_id").source.to_dict() == {0: "visual", 1: "geometric"}
+    assert cands.verification.tolist() == [0.8, 0.7]
+    with pytest.raises(ValueError, match="verifier"):
+        refine_candidates(registered, lambda c: None, lambda o: None, {1: 100.0}, RefineParams(icp=False), None)
+
+
+@pytest.fixture(scope="module")
+def rendered_frame():
+    """A synthetic object rendered at a known pose: depth with sensor-like noise, the mask."""
+    from pipeline.render import Renderer
+    from pipeline.synth.objects import build_object
+
+    mesh = build_object(8).model
+    K = np.array([[572.4, 0.0, 320.0], [0.0, 573.6, 240.0], [0.0, 0.0, 1.0]])
+    R = random_rotation(np.random.default_rng(5))
+    t = np.array([10.0, -20.0, 700.0])
+    renderer = Renderer(640, 480, znear=1.0, zfar=100000.0)
+    renderer.add_mesh(1, mesh)
+    depth = renderer.render_depth(1, R, t, K)
+    mask = depth > 0
+    rng = np.random.default_rng(6)
+    noisy = np.where(mask, depth + rng.normal(scale=1.5, size=depth.shape), 0).astype(np.float32)
+    noisy[rng.random(depth.shape) < 0.1] = 0  # holes
+    yield {"renderer": renderer, "K": K, "R": R, "t": t, "depth": noisy, "mask": mask,
+           "diameter": float(np.linalg.norm(mesh.extents))}
+    renderer.close()
+
+
+def test_verification_prefers_the_true_pose_over_its_flip(rendered_frame):
+    from pipeline.geometry.crops import mask_to_bbox
+    from pipeline.registration.verification import verification_window, verify_pose
+
+    f = rendered_frame
+    window = verification_window(mask_to_bbox(f["mask"]), f["depth"].shape)
+    tol = max(5.0, 0.05 * f["diameter"])
+    true = verify_pose(f["renderer"], 1, f["R"], f["t"], f["K"], f["depth"], f["mask"], window, tol)
+    assert true.silhouette > 0.98 and true.depth_fit > 0.98 and true.coverage > 0.98 and true.free_space < 0.01
+    # the flip: 180 degrees about the model's x axis, its centre kept in place
+    flip = np.diag([1.0, -1.0, -1.0])
+    centre = f["renderer"]._vertices[1].mean(axis=0)
+    R_f = f["R"] @ flip
+    t_f = f["t"] + f["R"] @ centre - R_f @ centre
+    flipped = verify_pose(f["renderer"], 1, R_f, t_f, f["K"], f["depth"], f["mask"], window, tol)
+    assert flipped.score < true.score - 0.2
+    assert flipped.depth_fit < 0.8 and flipped.silhouette < true.silhouette
+
+
+def test_occluders_are_neither_evidence_for_nor_against_a_pose():
+    from pipeline.registration.verification import compare_depth
+
+    rendered = np.zeros((40, 40), np.float32)
+    rendered[10:30, 10:30] = 500.0
+    observed = np.full((40, 40), 900.0, np.float32)  # a wall behind
+    observed[10:30, 10:30] = 500.0
+    observed[10:30, 10:20] = 300.0  # an occluder covers the left half of the object
+    observed[25:30, 25:30] = 0.0  # a sensor hole
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 20:30] = True  # the visible half is the candidate
+    v = compare_depth(rendered, observed, mask, tol=10.0)
+    assert v.silhouette == 1.0 and v.depth_fit == 1.0 and v.free_space == 0.0
+    assert v.coverage == 1.0  # every mask pixel with depth is explained
+    # the same pose one object-length too close: it stands in front of the wall
+    v2 = compare_depth(np.where(rendered > 0, 200.0, 0).astype(np.float32), observed, mask, tol=10.0)
+    assert v2.free_space == 1.0 and v2.depth_fit == 0.0 and v2.score < v.score - 1.0
+
+
+def test_coherent_but_wrong_matches_lose_to_the_stronger_modality():
+    """Matches that are wrong but spatially coherent (a smooth colour descriptor on a real
+    image: they all agree with one wrong pose) pass a held-out test of their own; only
+    their disagreement with the other modality's pose shows them. The stronger modality
+    keeps its weight, and every hypothesis counts its inliers among the weighted
+    matches, so that the true pose has the evidence."""
+    features, scene, sf, R, t = _problem(5, {"geometric": 0.5, "visual": 0.0})
+    rng = np.random.default_rng(7)
+    model = features["points"]
+    # visual: 30 % of the scene points carry the feature of where a pose flipped by 180
+    # degrees about the model's z axis puts them (coherent), the rest random ones
+    in_model = (scene - t) @ R
+    flipped = in_model * [-1.0, -1.0, 1.0]
+    wrong = np.argmin(np.linalg.norm(model[None] - flipped[:, None], axis=2), axis=1)
+    coherent = rng.random(600) < 0.3
+    sf["visual"][coherent] = features["visual"][wrong[coherent]]
+    res = coarse_hypotheses(matchable_model(features, 64), scene, sf["geometric"], sf["visual"], 250.0,
+                            RegisterParams(), seed=0)
+    assert not res.agree and res.signal_visual > 6  # the visual matches pass their own test
+    assert (res.w_geometric, res.w_visual) == (1.0, 0.0)
+    by_source = {h.source: h.registration for h in res.hypotheses if h.rank == 0}
+    assert rotation_angle_deg(by_source["geometric"].R, R) < 1.0
+    assert rotation_angle_deg(by_source["visual"].R, R) > 170.0  # the flip
+    assert by_source["geometric"].n_inliers > 3 * by_source["visual"].n_inliers
