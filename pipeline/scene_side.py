@@ -24,6 +24,7 @@ Units and conventions: BOP's (mm, OpenCV camera, model-to-camera ``R``, ``t``).
 from __future__ import annotations
 
 import time
+from functools import cached_property
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
@@ -206,7 +207,7 @@ class MatchableModel:
     visual: np.ndarray | None
     basis: Any
 
-    @property
+    @cached_property
     def fused(self) -> np.ndarray:
         """The paper's fused features (both parts at weight 1), (N, G + V)."""
         from pipeline.registration.fusion import fuse
@@ -465,17 +466,31 @@ class SceneImages:
     mesh: Callable[[int], Any]
     candidate: Callable[[int], tuple[tuple[float, float, float, float], np.ndarray]]
 
+    def keeping_last(self) -> "SceneImages":
+        """The same loaders, with the last image's depth and the last candidate's mask
+        kept: refinement asks for them hypothesis after hypothesis, and the verifier and
+        the fine ICP share them instead of reading and decoding them twice."""
+        return replace(self, depth=_keep_last(self.depth), candidate=_keep_last(self.candidate))
+
+
+def _keep_last(load: Callable[[int], Any]) -> Callable[[int], Any]:
+    last: list = [None, None]
+
+    def cached(key: int) -> Any:
+        if last[0] != key or last[1] is None:
+            last[:] = [key, load(key)]
+        return last[1]
+    return cached
+
 
 class PoseVerifier:
     """Verification (:mod:`pipeline.registration.verification`) of poses in the images of
-    one scene: one renderer, one image's depth and the candidates' masks kept while
-    they are asked for in turn. Use as a context manager (it holds an EGL context)."""
+    one scene, with one renderer (give it :meth:`SceneImages.keeping_last` loaders). Use
+    as a context manager (it holds an EGL context)."""
 
     def __init__(self, images: SceneImages, params: RefineParams):
         self.images, self.params = images, params
         self._renderer = None
-        self._depth: tuple[int, np.ndarray] | None = None
-        self._cand: tuple[int, Any] | None = None
 
     def __enter__(self) -> "PoseVerifier":
         return self
@@ -489,16 +504,12 @@ class PoseVerifier:
         from pipeline.registration.verification import verification_window, verify_pose
         from pipeline.render import Renderer
 
-        if self._depth is None or self._depth[0] != im_id:
-            self._depth = (im_id, self.images.depth(im_id))
-        depth = self._depth[1]
+        depth = self.images.depth(im_id)
         if self._renderer is None:
             self._renderer = Renderer(depth.shape[1], depth.shape[0], znear=1.0, zfar=100000.0)
         if not self._renderer.has_mesh(obj_id):
             self._renderer.add_mesh(obj_id, self.images.mesh(obj_id))
-        if self._cand is None or self._cand[0] != cand_id:
-            self._cand = (cand_id, self.images.candidate(cand_id))
-        bbox, mask = self._cand[1]
+        bbox, mask = self.images.candidate(cand_id)
         tol = max(self.params.verify_min_tol_mm, self.params.verify_tol_frac * diameter)
         window = verification_window(bbox, depth.shape, self.params.verify_margin)
         return verify_pose(self._renderer, obj_id, R, t, self.images.K(im_id), depth, mask, window, tol, evidence)
@@ -508,8 +519,8 @@ class FineIcp:
     """The fine ICP of a candidate's chosen pose: up to ``params.fine_icp_points`` of the
     candidate's depth points (mask and valid depth, outliers removed; every one, not
     scene_features' M samples) against ``params.fine_icp_model_points`` samples of the
-    model's surface, with the coarse-to-fine schedule of the hypotheses' ICP. One image's
-    depth and each object's samples are kept while asked for in turn.
+    model's surface (kept per object), with the coarse-to-fine schedule of the
+    hypotheses' ICP.
 
     Only objects in ``objects`` (those without shape symmetries) are refined: along a
     shape symmetry depth constrains nothing, and the longer ICP drifts where the visual
@@ -519,7 +530,6 @@ class FineIcp:
 
     def __init__(self, images: SceneImages, params: RefineParams, objects: set[int]):
         self.images, self.params, self.objects = images, params, set(objects)
-        self._depth: tuple[int, np.ndarray] | None = None
         self._models: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray,
@@ -530,13 +540,11 @@ class FineIcp:
 
         if obj_id not in self.objects:
             return None
-        if self._depth is None or self._depth[0] != im_id:
-            self._depth = (im_id, self.images.depth(im_id))
         if obj_id not in self._models:
             self._models[obj_id] = sample_surface(self.images.mesh(obj_id), self.params.fine_icp_model_points,
                                                   seed=obj_id)
         _, mask = self.images.candidate(cand_id)
-        pts, _ = candidate_points(self._depth[1], self.images.K(im_id), mask, diameter)
+        pts, _ = candidate_points(self.images.depth(im_id), self.images.K(im_id), mask, diameter)
         if len(pts) < 3:
             return None
         pts = pts[sample_candidate(len(pts), self.params.fine_icp_points, seed=cand_id)]

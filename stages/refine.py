@@ -81,7 +81,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
 
     images = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
                          depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
-                         mesh=bop.load_model, candidate=candidate)
+                         mesh=bop.load_model, candidate=candidate).keeping_last()
     with progress_bar(f"refine {item}", total=len(registered), enabled=progress) as bar, \
             PoseVerifier(images, p) as verify:
         asymmetric = {o for o in set(registered.obj_id.astype(int))
