@@ -9,20 +9,28 @@ from snakemake.utils import min_version
 
 min_version("9.0")
 
+from pipeline.cli_common import USER_ERRORS
 from pipeline.config import load_run
 from pipeline.plan import RunPlan
 
-RUN = load_run(config)          # manifests/runs/default.yaml + --config overrides
-PLAN = RunPlan(RUN)
-DATASETS = []
-for _ds in PLAN.dataset_names:
-    _ok, _why = PLAN.available(_ds)
-    if _ok:
-        DATASETS.append(_ds)
-        for _note in PLAN.notes(_ds):
-            print(_note, file=sys.stderr)
-    else:
-        print(_why, file=sys.stderr)
+try:
+    RUN = load_run(config)      # manifests/runs/default.yaml + --config overrides
+    PLAN = RunPlan(RUN)
+    DATASETS = []
+    for _ds in PLAN.dataset_names:
+        _ok, _why = PLAN.available(_ds)
+        if _ok:
+            DATASETS.append(_ds)
+            for _note in PLAN.notes(_ds):
+                print(_note, file=sys.stderr)
+        else:
+            print(_why, file=sys.stderr)
+except USER_ERRORS as _e:       # a bad option or manifest: its one line, not a traceback
+    print(f"error: {_e}", file=sys.stderr)
+    sys.exit(1)
+if not DATASETS:                # nothing to run is a failure, not an empty table
+    print("error: no dataset of the run can be run (see above); nothing to do", file=sys.stderr)
+    sys.exit(1)
 # Jobs rebuild the plan from this variable. It is deliberately not a rule param:
 # Snakemake reruns jobs whose params change, but a job's output path already encodes
 # its key, so a change that does not alter a stage's key must not rerun it.

@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pipeline.cli_common import parse_overrides
+from pipeline.cli_common import USER_ERRORS, guard_commands, parse_overrides
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="FreeZe: training-free zero-shot 6D pose estimation, as a cached BOP pipeline.")
@@ -58,6 +58,9 @@ def stage(
     console.print(f"[bold]{name}[/] {dataset}/{item} -> {sp.item_dir(item)}")
     try:
         run_stage(plan, name, item, progress=progress)
+    except USER_ERRORS as e:  # bad input or a damaged artifact: one line, no traceback
+        console.print(f"[red]stage {name} failed on {dataset}/{item}: {e}", soft_wrap=True)
+        raise typer.Exit(1) from None
     except Exception as e:
         console.print(f"[red]stage {name} failed on {dataset}/{item}: {type(e).__name__}: {e}")
         raise
@@ -137,7 +140,13 @@ def score(
     workers: int = typer.Option(1, help="worker processes"),
     vsd_delta: Optional[float] = typer.Option(None, help="VSD tolerance in mm [default: 5 for itodd, else 15]"),
 ) -> None:
-    """Score a BOP results CSV with the BOP19 metrics (VSD, MSSD, MSPD, AR)."""
+    """Score a BOP results CSV with the BOP19 metrics (VSD, MSSD, MSPD, AR).
+
+    Every R must be a rotation: max|R^T R - I| <= 0.001 and |det R - 1| <= 0.001
+    (pipeline.metrics.ROTATION_TOLERANCE). A file with another R (an all-zero
+    one too) is refused with exit code 1, naming how many rows are bad and the
+    first one.
+    """
     from pipeline.bop.errors import BopFormatError
     from pipeline.metrics import score_results_file
 
@@ -145,7 +154,8 @@ def score(
         s = score_results_file(results, dataset_root, split=split, targets_file=targets, out_dir=out,
                                n_workers=workers, vsd_delta=vsd_delta)
     except BopFormatError as e:
-        console.print(f"[red]{e}")
+        # soft_wrap: one line, the path kept whole for copying.
+        console.print(f"[red]{e}", soft_wrap=True)
         raise typer.Exit(1)
     _print_scores({results.stem: s.summary})
     summ = s.summary
@@ -175,12 +185,13 @@ def _print_scores(rows: dict[str, dict]) -> str:
 
 def _publish_csv(plan, folder: Path) -> Path:
     """Copy the dataset's results CSV into ``folder`` atomically (a temporary sibling
-    renamed into place); returns the copy."""
-    from pipeline.store import atomic_write_text
+    renamed into place) with the mode the umask gives a new file (0644 under umask 022);
+    returns the copy."""
+    from pipeline.published_files import write_text_published
 
     dst = folder / plan.results_csv_name
-    atomic_write_text(dst, (plan["refine"].item_dir("all") / plan.results_csv_name).read_text(encoding="utf-8"))
-    return dst
+    return write_text_published(
+        dst, (plan["refine"].item_dir("all") / plan.results_csv_name).read_text(encoding="utf-8"))
 
 
 @app.command("table")
@@ -193,10 +204,11 @@ def ar_table(
 ) -> None:
     """Print the AR table of the run's datasets from their score artifacts."""
     from pipeline.plan import plan_from_json
-    from pipeline.store import read_manifest
+    from pipeline.store import DamagedArtifact, ensure_sound, read_manifest
 
     rp = plan_from_json(run_json, parse_overrides(config))
     rows = {}
+    failed = False
     for ds in rp.dataset_names:
         ok, why = rp.available(ds)
         if not ok:
@@ -204,19 +216,30 @@ def ar_table(
             continue
         path = rp[ds]["score"].item_dir("all")
         try:
+            ensure_sound(path)  # the AR shown must be that of an intact score artifact
             rows[ds] = read_manifest(path)["summary"]
         except FileNotFoundError:
             console.print(f"{ds}: not scored yet ({path} missing): run `snakemake --cores 2 bop_all`")
+            failed = True
+            continue
+        except DamagedArtifact as e:
+            console.print(f"[red]{ds}: {e}", soft_wrap=True)
+            failed = True
             continue
         if csv_dir:
             _publish_csv(rp[ds], csv_dir)
     md = _print_scores(rows)
-    for ds, s in rows.items():
-        for note in s.get("notes") or []:
-            console.print(f"{ds}: {note}")
+    notes = [f"{ds}: {note}" for ds, s in rows.items() for note in s.get("notes") or []]
+    for line in notes:
+        console.print(f"[yellow]{line}", soft_wrap=True)
+    if notes:  # the Snakefile prints the table file: the warnings go with it
+        md = md.rstrip("\n") + "\n\n" + "\n".join(f"- {line}" for line in notes) + "\n"
     if out:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(md)
+        from pipeline.published_files import write_text_published
+
+        write_text_published(out, md)  # atomic, mode 0o666 & ~umask
+    if failed:
+        raise typer.Exit(1)
 
 
 show_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Pictures made from the artifacts.")
@@ -271,13 +294,25 @@ def datasets_check(
     as_json: bool = typer.Option(False, "--json", help="machine-readable output"),
     prior: Optional[str] = typer.Option(None, help="priors to check instead of the default detections, as in "
                                                    "--config prior=... (detector names or paths, comma-separated)"),
+    deep: bool = typer.Option(False, "--deep", help="also open the first, the middle and the last target image of "
+                                                    "every scene: RGB decodes; depth is 16-bit single-channel, of the "
+                                                    "RGB's and the camera's size, not all zero"),
 ) -> None:
     """Check every BOP dataset found under ROOT before a long run: the files and fields
-    each stage needs, units, targets without images, the prior; print a summary per
-    dataset. Exits with 1 when a dataset has errors."""
-    from pipeline.datasets_check import check_root
+    each stage needs, every model file (readable PLY, faces, finite vertices, extent
+    matching models_info's diameter in mm), units, targets without images, the prior;
+    print a summary per dataset. Exits with 1 when a dataset has errors or when ROOT
+    holds no dataset."""
+    from pipeline.datasets_check import check_root, no_dataset_message
 
-    reports, absent = check_root(root, [p for p in prior.split(",") if p] if prior else None)
+    reports, absent = check_root(root, [p for p in prior.split(",") if p] if prior else None, deep=deep,
+                                 progress=True)
+    if not reports:  # nothing checked is not a pass: most likely the wrong folder
+        message = no_dataset_message(root)
+        if as_json:
+            print(json.dumps({"datasets": [], "absent": absent, "error": message}, indent=1))
+        console.print(message, style="red", markup=False, soft_wrap=True)
+        raise typer.Exit(1)
     if as_json:
         print(json.dumps({"datasets": [r.to_json() for r in reports], "absent": absent}, indent=1))
     else:
@@ -293,11 +328,11 @@ def datasets_check(
                           "-" if "ground_truth" not in s else "yes" if s["ground_truth"] else "private/absent",
                           "[green]ok" if r.ok else f"[red]{len(r.errors)} error(s)")
         Console(width=max(120, Console().width)).print(table)
-        for r in reports:
+        for r in reports:  # one line each, the path kept whole for copying; no markup: paths may hold '['
             for e in r.errors:
-                console.print(f"[red]{r.name}: {e}")
+                console.print(f"{r.name}: {e}", style="red", markup=False, soft_wrap=True)
             for w in r.warnings:
-                console.print(f"[yellow]{r.name}: {w}")
+                console.print(f"{r.name}: {w}", style="yellow", markup=False, soft_wrap=True)
         if absent:
             console.print(f"not found under {root}: {', '.join(absent)}")
     if any(not r.ok for r in reports):
@@ -306,14 +341,15 @@ def datasets_check(
 
 def _add_module_commands() -> None:
     """Commands that live in their own modules (each has ``add_commands(app, show_app)``)."""
-    from pipeline import estimate_cli, inspect_cli
+    from pipeline import estimate_cli, inspect_cli, run_cli
     from pipeline.report import cli as report_cli
 
-    for module in (inspect_cli, report_cli, estimate_cli):
+    for module in (run_cli, inspect_cli, report_cli, estimate_cli):
         module.add_commands(app, show_app)
 
 
 _add_module_commands()
+guard_commands(app)
 
 
 def main() -> None:  # pragma: no cover

@@ -239,9 +239,9 @@ class DatasetManifest(_Strict):
     public_gt: bool = Field(True, description="false when the test ground truth is private (ITODD, HB): the "
                                               "results CSV is made for the BOP server and no AR is computed here")
     fingerprint: Literal["layout", "content"] = Field(
-        "layout", description="what the cache keys of a BOP dataset on disk cover: 'layout' (camera, models_info, "
-                              "targets, model file names and sizes: cheap on large datasets) or 'content' (every "
-                              "file's bytes; the model side keyed by the models' bytes alone)")
+        "content", description="kept for older manifests; either value now gives the same keys: the bytes of every "
+                               "file the stages read, hashed once and remembered by (path, size, mtime, inode) in "
+                               "<cache>/.file-hashes.sqlite")
 
     @property
     def image_mode(self) -> str:
@@ -398,15 +398,67 @@ def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]
 def _read_run_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """A run manifest's mapping, with ``extends: OTHER.yaml`` (relative to the file)
     resolved: the other manifest, with this file's keys merged over it (nested
-    mappings such as ``stages.refine`` merge key by key)."""
-    data = _read_yaml(path)
+    mappings such as ``stages.refine`` merge key by key).
+
+    Any unreadable file (a folder, not UTF-8 text, YAML nested too deeply for the parser)
+    raises ``ManifestError`` naming it; so does a ``bop_root`` that is not a path
+    string, which ``load_run`` turns into an absolute path before validation.
+    """
+    try:
+        data = _read_yaml(path)
+    except UnicodeDecodeError as e:
+        raise ManifestError(f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x})") from None
+    except RecursionError:  # PyYAML's composer recurses once per nesting level
+        raise ManifestError(f"{path}: not valid YAML: nested too deeply") from None
+    except ManifestError:
+        raise
+    except ValueError as e:  # PyYAML's int(): more digits than sys.get_int_max_str_digits()
+        reason = ("an integer has more digits than Python reads (4300)" if "integer string conversion" in str(e)
+                  else " ".join(str(e).split())[:100])
+        raise ManifestError(f"{path}: not valid YAML: {reason}") from None
+    except IsADirectoryError:
+        raise ManifestError(f"{path}: is a directory, not a manifest file") from None
+    except OSError as e:
+        raise ManifestError(f"{path}: cannot read the manifest: {e.strerror or e}") from None
     parent = data.pop("extends", None)
-    if parent is None:
-        return data
-    base_path = (path.parent / str(parent)).resolve()
-    if base_path in seen:
-        raise ManifestError(f"{path}: field 'extends' makes a cycle through {base_path}")
-    return _deep_merge(_read_run_yaml(base_path, seen + (path.resolve(),)), data)
+    if parent is not None:
+        if not isinstance(parent, str) or not parent.strip() or "\0" in parent:
+            raise ManifestError(f"{path}: field 'extends': expected a manifest file name, got {parent!r:.80}")
+        base_path = (path.parent / parent).resolve()
+        if base_path in seen or base_path == path.resolve():
+            raise ManifestError(f"{path}: field 'extends' makes a cycle through {base_path}")
+        if base_path.is_dir():
+            raise ManifestError(f"{path}: field 'extends': {base_path} is a directory, not a manifest file")
+        data = _deep_merge(_read_run_yaml(base_path, seen + (path.resolve(),)), data)
+    root = data.get("bop_root")
+    if root is not None and not (isinstance(root, str) and "\0" not in root):
+        raise ManifestError(f"{path}: field 'bop_root': expected a folder path, got {root!r:.80}")
+    return data
+
+
+def known_config_keys() -> list[str]:
+    """The keys ``--config`` accepts (Snakemake's and ``freeze``'s): ``run``, the run
+    manifest's top-level keys and their short forms."""
+    return sorted({"run", *_OVERRIDES, *_ALIASES, *RunManifest.model_fields})
+
+
+def _refuse_unknown_keys(config: Mapping[str, Any]) -> None:
+    """Raise :class:`ManifestError` naming every key of ``config`` that nothing reads,
+    with the known keys and the closest one: a typo (``visaul=none``) must not run the
+    default configuration quietly."""
+    import difflib
+
+    known = known_config_keys()
+    unknown = [k for k in config if k not in known]
+    if not unknown:
+        return
+    hints = []
+    for k in unknown:
+        close = difflib.get_close_matches(str(k), known, n=1, cutoff=0.6)
+        hints.append(f"'{k}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    raise ManifestError(f"config: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(hints)}; known keys: "
+                        f"{', '.join(known)} (one stage parameter: freeze ... -c register.max_iterations=20000, or a "
+                        "run manifest with run=FILE)")
 
 
 def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) -> RunManifest:
@@ -419,6 +471,7 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
     absolute (stage jobs may run elsewhere).
     """
     config = dict(config or {})
+    _refuse_unknown_keys(config)
     run_path = Path(config.pop("run", None) or path or DEFAULT_RUN)
     if not run_path.is_absolute() and not run_path.exists():
         run_path = PROJECT_ROOT / run_path

@@ -10,13 +10,23 @@ plain findings naming the file and the field:
   image and a depth image per target image;
 - what the manifest says of the dataset as BOP distributes it: the object ids, the
   image folder and extension (ITODD ``gray/*.tif``) and the image size;
-- units: diameters in mm (a diameter below 5 looks like metres), depth_scale present
-  and positive;
+- units: diameters present, positive and in mm (a diameter below 5 looks like metres),
+  depth_scale present and positive;
+- every model file (the manifest's model folder and ``models_eval``), opened through
+  the pipeline's own reader (:meth:`pipeline.bop.BopDataset.load_model`): unreadable or
+  corrupt PLYs, meshes without faces, NaN/inf vertices, and vertices whose extent
+  disagrees with models_info's diameter (a model in metres beside a diameter in mm);
 - targets whose image is missing; targets of objects without a model; scenes without
   ground truth (expected where it is private: ITODD, HB);
 - each prior file: found, parseable, category ids that are the dataset's objects (or
   look like 0-/1-based indices: see ``segment_prior.category_ids``), detections for
   objects not in models_info and targets without any detection.
+
+With ``deep``, it also opens a sample of the images, the first, the middle and the
+last target image of every scene (:func:`deep_sample`): the RGB image decodes; the
+depth image decodes, is 16-bit single-channel (the reader's rule,
+:func:`pipeline.bop.dataset.depth_format_problem`), has the size of the RGB image and
+of the camera file's ``width``/``height``, and is not zero everywhere (a warning).
 
 It returns a summary (objects, scenes, images, targets, instances per target) and the
 findings; errors make the dataset unusable, warnings do not.
@@ -24,13 +34,48 @@ findings; errors make the dataset unusable, warnings do not.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterator, Protocol
+
+import numpy as np
 
 from pipeline.bop.dataset import MIN_DIAMETER_MM
+
+EXTENT_TOLERANCE = 1.25
+"""How far a model's vertices may stray from models_info's diameter before it is
+reported: the diameter lies between the bounding box's largest side and its diagonal,
+and this factor either way absorbs rounding and the resampled models_eval meshes while
+still catching a unit slip (x10, x1000)."""
+
+
+class Advance(Protocol):
+    """What the checks need of a progress bar (:class:`pipeline.progress.ProgressBar`)."""
+
+    def advance(self, n: int = 1) -> None: ...
+
+
+BarFactory = Callable[[str, int], Advance]
+"""(description, total) -> a bar to advance once per item."""
+
+
+def _no_bar(description: str, total: int) -> Advance:
+    from pipeline.progress import ProgressBar
+
+    return ProgressBar()  # silent
+
+
+def no_dataset_message(bop_root: Path) -> str:
+    """The one-line message of a check that found no dataset under ``bop_root``."""
+    hint = ""
+    if (Path(bop_root) / "models").is_dir() or any(Path(bop_root).glob("camera*.json")):
+        hint = f" ({bop_root} looks like a dataset folder itself: pass its parent)"
+    return (f"no BOP dataset found under {bop_root}; expected folders like lmo/, tless/ with models/ and a "
+            f"split folder{hint}")
 
 
 @dataclass
@@ -52,31 +97,39 @@ class DatasetReport:
                 "errors": self.errors, "warnings": self.warnings}
 
 
-def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None) -> DatasetReport:
+def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None, *, deep: bool = False,
+                  bar: BarFactory | None = None) -> DatasetReport:
     """Check the dataset of ``manifest`` (a :class:`pipeline.config.DatasetManifest` of
     kind ``bop``) under ``bop_root``; ``priors`` as the run's (None: the dataset's
-    default detections)."""
+    default detections). Every model file is opened; ``deep`` also opens the images of
+    :func:`deep_sample`. ``bar(description, total)`` makes a progress bar for the model
+    and image loops (None: silent)."""
     from pipeline.plan import missing_ground_truth, open_bop
 
+    bar = bar or _no_bar
     root = Path(bop_root) / (manifest.folder or manifest.name)
     rep = DatasetReport(manifest.name, root)
     try:
         bop = open_bop(root, manifest)
         bop.camera()
-        infos = bop.models_info()
         targets = bop.targets(root / manifest.targets_file)
     except (ValueError, OSError) as e:  # BopFormatError is a ValueError
         rep.errors.append(str(e))
         return rep
-    _check_models(rep, bop, manifest, infos, targets)
+    diameters = _diameters(rep, bop)
+    if diameters is None:
+        return rep
+    _check_models(rep, bop, manifest, diameters, targets, bar)
     images = sorted({(t.scene_id, t.im_id) for t in targets})
     scenes = sorted({s for s, _ in images})
     missing_images, sizes = _check_images(rep, bop, manifest, images)
+    if deep:
+        _check_sample(rep, bop, deep_sample(images), bar)
     gt_missing = missing_ground_truth(bop, scenes)
     if gt_missing and manifest.public_gt:
         rep.warnings.append(f"{gt_missing[0]}: not found ({len(gt_missing)} of "
                             f"{len(scenes)} target scenes lack ground truth): estimates will be made, but no AR")
-    n_detections = _check_priors(rep, Path(bop_root), manifest, priors, infos, targets)
+    n_detections = _check_priors(rep, Path(bop_root), manifest, priors, diameters, targets)
     per_target = Counter(t.inst_count for t in targets)
     rep.summary = {
         "objects": len({t.obj_id for t in targets}), "scenes": len(scenes), "images": len(images),
@@ -89,12 +142,56 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None) -> 
     return rep
 
 
-def _check_models(rep: DatasetReport, bop, manifest, infos: dict, targets: list) -> None:
-    """Model folders, units, and the object ids against the manifest's."""
-    for obj_id, info in sorted(infos.items()):
-        if info.diameter < MIN_DIAMETER_MM:
-            rep.errors.append(f"{bop.models_info_path()}: object {obj_id}: field 'diameter' is {info.diameter:g}, "
-                              f"below {MIN_DIAMETER_MM:g}: models must be in mm (these look like metres)")
+def _diameters(rep: DatasetReport, bop) -> dict[int, float | None] | None:
+    """models_info's diameter (mm) per object, None where it is missing or not a
+    number; each missing, non-positive or metre-sized diameter is reported. When the
+    file does not parse (a missing diameter stops the reader), the diameters are read
+    from the raw JSON so that every object is reported, not only the first, and the
+    models are still checked. Returns None when not even that is possible."""
+    from pipeline.bop.jsonio import load_json
+
+    path = bop.models_info_path()
+    try:
+        diameters: dict[int, float | None] = {o: float(i.diameter) for o, i in bop.models_info().items()}
+        parse_error = None
+    except (ValueError, OSError) as e:
+        parse_error = str(e)
+        try:
+            content = load_json(path)
+        except (ValueError, OSError):
+            content = None
+        if not isinstance(content, dict) or not all(str(k).strip().isdigit() for k in content):
+            rep.errors.append(parse_error)
+            return None
+        diameters = {int(k): _number(v.get("diameter") if isinstance(v, dict) else None)
+                     for k, v in sorted(content.items(), key=lambda kv: int(kv[0]))}
+    problems = []
+    for obj_id, d in diameters.items():
+        if d is None:
+            problems.append(f"{path}: object {obj_id}: field 'diameter' is missing or not a number: "
+                            "give the model's diameter in mm")
+        elif d <= 0:
+            problems.append(f"{path}: object {obj_id}: field 'diameter' is {d:g}: it must be positive (mm)")
+        elif d < MIN_DIAMETER_MM:
+            problems.append(f"{path}: object {obj_id}: field 'diameter' is {d:g}, below {MIN_DIAMETER_MM:g}: "
+                            "models must be in mm (these look like metres)")
+    rep.errors.extend(problems)
+    # the reader's own message says the same as ours when it stopped at a diameter
+    if parse_error and not (problems and "'diameter'" in parse_error):
+        rep.errors.append(parse_error)
+    return diameters
+
+
+def _number(value: Any) -> float | None:
+    """A JSON number as a finite float, else None (bools are not numbers here)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def _check_models(rep: DatasetReport, bop, manifest, diameters: dict[int, float | None], targets: list,
+                  bar: BarFactory) -> None:
+    """Model folders, the object ids against the manifest's, and every model file."""
     models_dir = bop.root / manifest.models
     if not models_dir.is_dir():
         where = "models_eval/ (geometry only: no colour for the templates)" if (bop.root / "models_eval").is_dir() else None
@@ -114,10 +211,11 @@ def _check_models(rep: DatasetReport, bop, manifest, infos: dict, targets: list)
     with warnings.catch_warnings():
         # the missing model folder was reported above; the reader's fallback warning would repeat it
         warnings.simplefilter("ignore", UserWarning)
-        _check_model_files(rep, bop, manifest, infos, target_objs)
+        _check_model_files(rep, bop, manifest, diameters, target_objs)
+        _check_meshes(rep, bop, diameters, bar)
 
 
-def _check_model_files(rep: DatasetReport, bop, manifest, infos: dict, target_objs: list[int]) -> None:
+def _check_model_files(rep: DatasetReport, bop, manifest, infos: dict[int, Any], target_objs: list[int]) -> None:
     """A models_info entry and a model file for every target object."""
     for obj_id in target_objs:
         if obj_id not in infos:
@@ -125,6 +223,134 @@ def _check_model_files(rep: DatasetReport, bop, manifest, infos: dict, target_ob
                               f"{bop.models_info_path()}")
         elif not bop.model_path(obj_id).is_file():
             rep.errors.append(f"{bop.model_path(obj_id)}: model file of target object {obj_id} not found")
+
+
+def _check_meshes(rep: DatasetReport, bop, diameters: dict[int, float | None], bar: BarFactory) -> None:
+    """Open the model file of every models_info object, in the onboarding folder and in
+    models_eval/ (scoring), through the pipeline's reader; absent files are reported by
+    :func:`_check_model_files` (targets) or do not matter (other objects)."""
+    jobs: list[tuple[int, bool, Path]] = []
+    seen: set[Path] = set()
+    for obj_id in diameters:
+        for eval_ in (False, True):
+            path = bop.model_path(obj_id, eval=eval_)
+            # without the model folder both paths are models_eval's: open it once
+            if path.is_file() and path not in seen:
+                seen.add(path)
+                jobs.append((obj_id, eval_, path))
+    progress = bar(f"{bop.name}: models", len(jobs))
+    for obj_id, eval_, path in jobs:
+        rep.errors.extend(model_problems(bop, obj_id, eval_, path, diameters[obj_id]))
+        progress.advance()
+
+
+def model_problems(bop, obj_id: int, eval_: bool, path: Path, diameter: float | None) -> list[str]:
+    """One line per problem of the model file ``path`` of ``obj_id`` (read with
+    ``bop.load_model``), given models_info's ``diameter`` in mm (None or below
+    MIN_DIAMETER_MM: already reported, the extent is not compared)."""
+    try:
+        mesh = bop.load_model(obj_id, eval=eval_)
+    except Exception as e:  # noqa: BLE001 - whatever a corrupt file makes the reader raise is a finding, not a crash
+        return [_one_line(path, e, "cannot read the PLY")]
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)  # (V, 3) mm
+    if len(vertices) == 0:
+        return [f"{path}: PLY has no vertices"]
+    problems = []
+    if len(mesh.faces) == 0:
+        problems.append(f"{path}: PLY has no faces (a point cloud?): templates and scores need a triangle mesh")
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.all():
+        problems.append(f"{path}: {int((~finite).sum())} of {len(vertices)} vertices are NaN or inf")
+    if diameter is None or diameter < MIN_DIAMETER_MM or not finite.any():
+        return problems
+    extent = vertices[finite].max(axis=0) - vertices[finite].min(axis=0)  # (3,) bounding box sides
+    side, diagonal = float(extent.max()), float(np.linalg.norm(extent))
+    if diameter > EXTENT_TOLERANCE * diagonal:
+        problems.append(_scale_message(path, diameter / max(diagonal, 1e-12), "smaller", diagonal, diameter))
+    elif diameter * EXTENT_TOLERANCE < side:
+        problems.append(_scale_message(path, side / diameter, "larger", side, diameter))
+    return problems
+
+
+def _scale_message(path: Path, factor: float, direction: str, span: float, diameter: float) -> str:
+    """A model ``factor`` times ``direction`` than its diameter, with the unit slip it
+    suggests when the factor is close to 10 or 1000."""
+    about = f"{factor:.2g}" if factor < 100 else f"{float(f'{factor:.2g}'):.0f}"
+    unit = {("smaller", 3): "in metres? (BOP models are in mm", ("smaller", 1): "in cm? (BOP models are in mm",
+            ("larger", 3): "is the diameter in metres? (BOP diameters are in mm"}
+    power = round(math.log10(factor))
+    hint = unit.get((direction, power)) if abs(math.log10(factor) - power) < 0.2 else None
+    numbers = f"the vertices span {span:.3g}, the diameter is {diameter:.4g})"
+    head = f"{path}: model is about {about}x {direction} than models_info's diameter"
+    return f"{head}: {hint}; {numbers}" if hint else f"{head} ({numbers}"
+
+
+def _one_line(path: Path, e: BaseException, what: str) -> str:
+    """An exception as one line starting with ``path`` (the reader's BopFormatError
+    messages already do)."""
+    text = " ".join(str(e).split()) or type(e).__name__
+    if text.startswith(str(path)):
+        return text
+    return f"{path}: {what} ({type(e).__name__}: {text})"
+
+
+def deep_sample(images: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The images ``--deep`` opens: the first, the middle and the last target image
+    (by im_id) of every scene, from the sorted (scene_id, im_id) pairs ``images``."""
+    by_scene: dict[int, list[int]] = {}
+    for scene_id, im_id in images:
+        by_scene.setdefault(scene_id, []).append(im_id)
+    out = []
+    for scene_id, ims in sorted(by_scene.items()):
+        ims = sorted(set(ims))
+        out += [(scene_id, im_id) for im_id in sorted({ims[0], ims[len(ims) // 2], ims[-1]})]
+    return out
+
+
+def _check_sample(rep: DatasetReport, bop, sample: list[tuple[int, int]], bar: BarFactory) -> None:
+    """Open the RGB and depth images of ``sample``: decodable, depth 16-bit single-channel
+    and of the RGB image's and the camera file's size, depth not zero everywhere. Missing
+    files were reported by :func:`_check_images`."""
+    from pipeline.bop.dataset import read_depth_image
+
+    cam = bop.camera()
+    cam_size = None
+    if isinstance(cam.get("width"), (int, float)) and isinstance(cam.get("height"), (int, float)):
+        cam_size = (int(cam["width"]), int(cam["height"]))
+    cam_says = f"{bop.camera_path().name} says {{}}x{{}} (fields 'width', 'height')"
+    progress = bar(f"{bop.name}: images (--deep)", len(sample))
+    for scene_id, im_id in sample:
+        rgb_size = None
+        try:
+            rgb_path = bop.rgb_path(scene_id, im_id)
+        except ValueError:
+            rgb_path = None
+        if rgb_path is not None:
+            try:
+                rgb = bop.load_rgb(scene_id, im_id)  # (H, W, 3)
+                rgb_size = (rgb.shape[1], rgb.shape[0])
+            except Exception as e:  # noqa: BLE001 - an undecodable image is a finding
+                rep.errors.append(_one_line(rgb_path, e, "cannot read the image"))
+            if rgb_size and cam_size and rgb_size != cam_size:
+                rep.errors.append(f"{rgb_path}: image is {rgb_size[0]}x{rgb_size[1]} px, " + cam_says.format(*cam_size))
+        depth_path = bop.depth_path(scene_id, im_id)
+        if depth_path is not None:
+            try:
+                raw = read_depth_image(depth_path)  # (H, W) depth units
+            except Exception as e:  # noqa: BLE001 - BopFormatError names the file; anything else is a finding too
+                rep.errors.append(_one_line(depth_path, e, "cannot read the depth image"))
+            else:
+                size = (raw.shape[1], raw.shape[0])
+                differs = []
+                if rgb_size and size != rgb_size:
+                    differs.append(f"the image {rgb_path.name} is {rgb_size[0]}x{rgb_size[1]}")
+                if cam_size and size != cam_size:
+                    differs.append(cam_says.format(*cam_size))
+                if differs:
+                    rep.errors.append(f"{depth_path}: depth is {size[0]}x{size[1]} px, " + " and ".join(differs))
+                if not (raw > 0).any():  # NaN compares False: a float map of NaNs is empty too
+                    rep.warnings.append(f"{depth_path}: depth is zero everywhere: this image will get no estimate")
+        progress.advance()
 
 
 def _check_images(rep: DatasetReport, bop, manifest, images: list[tuple[int, int]]) -> tuple[int, set]:
@@ -224,18 +450,39 @@ def _check_priors(rep: DatasetReport, bop_root: Path, manifest, priors: list[str
     return total
 
 
-def check_root(bop_root: Path, priors: list[str] | None = None) -> tuple[list[DatasetReport], list[str]]:
+def check_root(bop_root: Path, priors: list[str] | None = None, *, deep: bool = False,
+               progress: bool = False) -> tuple[list[DatasetReport], list[str]]:
     """Reports for every BOP dataset manifest whose folder exists under ``bop_root``,
-    and the names of those whose folder is absent."""
+    and the names of those whose folder is absent. ``deep``: see :func:`check_dataset`;
+    ``progress`` shows rich progress bars on stderr while models and images are opened."""
     from pipeline.config import MANIFEST_DIR, load_dataset_manifest
 
     reports, absent = [], []
-    for path in sorted((MANIFEST_DIR / "datasets").glob("*.yaml")):
-        man = load_dataset_manifest(path.stem)
-        if man.kind != "bop":
-            continue
-        if (Path(bop_root) / (man.folder or man.name)).is_dir():
-            reports.append(check_dataset(Path(bop_root), man, priors))
-        else:
-            absent.append(man.name)
+    with _bars(progress) as bar:
+        for path in sorted((MANIFEST_DIR / "datasets").glob("*.yaml")):
+            man = load_dataset_manifest(path.stem)
+            if man.kind != "bop":
+                continue
+            if (Path(bop_root) / (man.folder or man.name)).is_dir():
+                reports.append(check_dataset(Path(bop_root), man, priors, deep=deep, bar=bar))
+            else:
+                absent.append(man.name)
     return reports, absent
+
+
+@contextmanager
+def _bars(enabled: bool) -> Iterator[BarFactory]:
+    """A factory of progress bars (one rich display on stderr, so that ``--json`` output
+    on stdout stays parseable; transient, so that the report is what remains)."""
+    if not enabled:
+        yield _no_bar
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from pipeline.progress import ProgressBar
+
+    columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TimeRemainingColumn()]
+    with Progress(*columns, console=Console(stderr=True), transient=True) as progress:
+        yield lambda description, total: ProgressBar(progress, progress.add_task(description, total=total, rate=""))

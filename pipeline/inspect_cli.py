@@ -202,8 +202,59 @@ _STALE_NOTE = ("'Current' means: a stage signature the plan of the given run con
                "removed.")
 
 
+def _item_folder(path: Path) -> Path | None:
+    """The artifact item folder holding ``path`` (the nearest folder, ``path`` itself
+    included, with a manifest), or None."""
+    from pipeline.store import MANIFEST_NAME
+
+    for p in [Path(path), *Path(path).parents]:
+        if (p / MANIFEST_NAME).exists():
+            return p
+    return None
+
+
 def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
-    """Add ``inspect``, ``ls`` and ``gc`` to ``app`` and ``features`` to ``show_app``."""
+    """Add ``inspect``, ``ls``, ``gc`` and ``verify`` to ``app`` and ``features`` to ``show_app``."""
+
+    @app.command("verify")
+    def verify_cmd(
+        dataset: Optional[list[str]] = typer.Option(None, "--dataset", "-d", help="datasets (default: every one in the cache)"),
+        cache: Optional[Path] = typer.Option(None, help="cache root (default $FREEZE_CACHE or <project>/cache)"),
+        repair: bool = typer.Option(False, "--repair", help="delete the damaged item folders and the leftovers of killed "
+                                                           "runs, so that the next run rebuilds them"),
+        quick: bool = typer.Option(False, "--quick", help="compare file sizes only, not checksums"),
+        tmp_min_age: float = typer.Option(60.0, help="minutes: younger .tmp-*/.old-* leftovers may belong to a running "
+                                                     "job and are left alone"),
+        progress: bool = typer.Option(True, help="show a progress bar"),
+    ) -> None:
+        """Check every artifact of a cache against its manifest: each file's size and SHA-256 as recorded when it was
+        published. Lists damaged items (a file missing, truncated or altered; an unreadable manifest) and leftovers
+        of killed runs. Exits 1 when it finds damage, unless --repair removed it."""
+        from pipeline.cache_verify import count_items, verify_cache
+        from pipeline.plan import cache_root
+        from pipeline.progress import progress_bar
+
+        root = Path(cache) if cache else cache_root()
+        if not root.is_dir():
+            _err().print(f"[red]{root}: no cache folder")
+            raise typer.Exit(1)
+        with progress_bar(f"verify {root}", total=count_items(root, dataset), enabled=progress) as bar:
+            report = verify_cache(root, dataset, checksums=not quick, repair=repair,
+                                  leftover_min_age_s=tmp_min_age * 60, advance=bar.advance)
+        out = _err()
+        for item, problems in report.damaged.items():
+            for line in problems:
+                out.print(f"[red]damaged: {escape(line)}")
+        for p in report.leftovers:
+            out.print(f"[yellow]leftover of a killed run: {escape(str(p))}")
+        what = "sizes" if quick else "sizes and checksums"
+        out.print(f"{report.checked} artifact items checked ({what}): {len(report.damaged)} damaged, "
+                  f"{len(report.leftovers)} leftovers")
+        if repair and report.removed:
+            out.print(f"removed {len(report.removed)}; the next run rebuilds the damaged items")
+        elif not report.ok:
+            out.print("run `freeze verify --repair` to remove them; the next run rebuilds the damaged items")
+            raise typer.Exit(1)
 
     @app.command("inspect")
     def inspect_cmd(
@@ -216,7 +267,16 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         feature rows), its Parquet tables (schema, rows, key metadata) and the tree of upstream artifacts it was
         built from."""
         from pipeline.artifacts import NotAnArtifact, inspect_artifact
+        from pipeline.store import verify_item
 
+        item = _item_folder(path)
+        if item is not None:
+            problems = verify_item(item)
+            if problems:  # name the damaged file rather than fail inside a reader
+                for line in problems:
+                    _err().print(f"[red]damaged artifact: {escape(line)}")
+                _err().print("run `freeze verify --repair` to remove the damaged items; a rerun rebuilds them")
+                raise typer.Exit(1)
         try:
             info = inspect_artifact(path)
         except NotAnArtifact as e:

@@ -23,7 +23,7 @@ from pipeline import config as cfg
 from pipeline import stage_graph
 from pipeline.stage_graph import EXTERNAL, UndeclaredRead, item_kind, upstream_items
 from pipeline.bop.detections import detector_name
-from pipeline.store import MANIFEST_NAME, file_sha1, make_key, make_signature
+from pipeline.store import MANIFEST_NAME, ensure_sound, file_sha1, make_key, make_signature
 
 STAGES = tuple(stage_graph.STAGES)
 """Stage names in graph order (declared in :mod:`pipeline.stage_graph`)."""
@@ -58,15 +58,24 @@ def parse_item(item: str) -> tuple[str, int | None]:
 def resolve_prior(base: Path, pattern: str) -> Path:
     """The prior file ``base / pattern``; ``pattern`` may hold glob characters (the BOP
     default detection files carry a suffix after ``<method>_<dataset>-test``), and must
-    then match exactly one file. Raises ``ManifestError`` naming the pattern otherwise."""
+    then match exactly one file. Raises ``ManifestError`` naming the pattern otherwise.
+    A relative pattern must stay inside ``base`` (``../../etc/passwd`` is refused); a
+    file elsewhere is given by its absolute path."""
     path = Path(base) / pattern
     if not any(c in pattern for c in "*?["):
-        return path.resolve()
-    matches = sorted(Path(base).glob(pattern))
-    if len(matches) != 1:
-        found = ", ".join(str(m) for m in matches) if matches else "no file"
-        raise cfg.ManifestError(f"{path}: the prior pattern (field 'prior') must match exactly one file, found {found}")
-    return matches[0].resolve()
+        found = path.resolve()
+    else:
+        matches = sorted(Path(base).glob(pattern)) if not Path(pattern).is_absolute() else \
+            sorted(Path(path.anchor).glob(str(path.relative_to(path.anchor))))
+        if len(matches) != 1:
+            listed = ", ".join(str(m) for m in matches) if matches else "no file"
+            raise cfg.ManifestError(f"{path}: the prior pattern (field 'prior') must match exactly one file, "
+                                    f"found {listed}")
+        found = matches[0].resolve()
+    if not Path(pattern).is_absolute() and not found.is_relative_to(Path(base).resolve()):
+        raise cfg.ManifestError(f"prior '{pattern}' resolves to {found}, outside bop_root {Path(base).resolve()}; "
+                                "give the absolute path of a prior file kept elsewhere")
+    return found
 
 
 def item_id(item: str, kind: str, stage: str) -> int:
@@ -225,11 +234,16 @@ class StageIO:
             item = allowed[0]
         elif item not in allowed:
             raise UndeclaredRead(f"stage {self.stage} for {self.item} reads {stage} items {allowed[:3]}..., not {item}")
-        return self.plan[stage].item_dir(item)
+        folder = self.plan[stage].item_dir(item)
+        ensure_sound(folder)  # a damaged input fails here, naming its file, not deep inside a reader
+        return folder
 
     def bop(self):
-        """The dataset reader (:class:`pipeline.bop.BopDataset`); the stage must read ``dataset``."""
+        """The dataset reader (:class:`pipeline.bop.BopDataset`); the stage must read ``dataset``.
+        A generated dataset (the synth stage's artifact) is verified first."""
         self._check("dataset")
+        if "synth" in self.plan.stages and self.stage != "synth":
+            ensure_sound(self.plan["synth"].item_dir("dataset"))
         return self.plan.bop()
 
     @property
@@ -375,23 +389,29 @@ def _legacy_spelling(stage: str, params: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _bop_layout(root: Path, ds: cfg.DatasetManifest) -> tuple[list[int], list[int], str, str, bool]:
+def _bop_layout(root: Path, ds: cfg.DatasetManifest, cache: Path) -> tuple[list[int], list[int], str, str, bool]:
     """(target objects, target scenes, dataset key, models key, whether every target
     scene has ground truth) of a BOP dataset on disk.
 
-    With ``fingerprint: layout`` (the core datasets) both keys are
-    :meth:`pipeline.bop.BopDataset.fingerprint` (names and sizes; image contents are not
-    read). With ``fingerprint: content`` (small datasets, such as the one-image dataset
-    ``freeze estimate`` writes) the dataset key hashes every file's bytes and the models
-    key only those the model side reads, so the model side is reused for new images."""
+    The keys cover the bytes of what the stages read (:class:`pipeline.file_hashes.
+    FileHashes`, remembered in ``<cache>/.file-hashes.sqlite`` so that only changed
+    files are read again): the models key the model folder and ``models_info.json``
+    (all the model side reads, so the model side is reused for new images); the dataset
+    key those, ``models_eval/``, the camera file, the targets file and every file of
+    the target scenes (images, masks, scene JSON)."""
+    from pipeline.file_hashes import DB_NAME, FileHashes, files_under
+
     bop = open_bop(root, ds)
-    targets = bop.targets(root / ds.targets_file)
+    targets_path = root / ds.targets_file
+    targets = bop.targets(targets_path)
     obj_ids = sorted({t.obj_id for t in targets})
     scene_ids = sorted({t.scene_id for t in targets})
-    if ds.fingerprint == "content":
-        dataset_key, models_key = bop.content_fingerprints()
-    else:
-        dataset_key = models_key = bop.fingerprint()
+    hashes = FileHashes(cache / DB_NAME)
+    models = files_under(bop.model_folder()) + [str(p) for p in [bop.models_info_path()] if p.is_file()]
+    scene_files = [p for s in scene_ids for p in files_under(bop.scene_dir(s))]
+    extra = [str(p) for p in (bop.camera_path(), targets_path) if p.is_file()] + files_under(root / "models_eval")
+    keys = hashes.fingerprints(os.path.abspath(root), {"models": models, "dataset": models + extra + scene_files})
+    models_key, dataset_key = keys["models"], keys["dataset"]
     return obj_ids, scene_ids, dataset_key, models_key, not missing_ground_truth(bop, scene_ids)
 
 
@@ -512,7 +532,7 @@ class RunPlan:
             if not run.bop_root:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
-            obj_ids, scene_ids, dataset_key, models_key, has_gt = _bop_layout(root, ds)
+            obj_ids, scene_ids, dataset_key, models_key, has_gt = _bop_layout(root, ds, self.cache)
             if not has_gt:  # score cannot compute AR; ground truth added later must rescore
                 score_extra = {"ground_truth": False}
             prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]

@@ -8,11 +8,14 @@ anything runs (Snakemake computes output paths from it at DAG time).
 
 Publishing is atomic: an item is written into a hidden temporary sibling directory and
 renamed into place only when complete, manifest included. A killed or failed stage
-leaves the previous artifact untouched and no half-written one.
+leaves the previous artifact untouched and no half-written one. The manifest lists every
+file with its size and SHA-256 digest; :func:`verify_item` checks them, and stages check
+their inputs (:func:`ensure_sound`) before reading them.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -40,7 +43,7 @@ JOB_START: float | None = None
 def mark_job_start() -> None:
     global JOB_START
     JOB_START = time.perf_counter()
-MANIFEST_SCHEMA = 1
+MANIFEST_SCHEMA = 2  # 2: "files" lists each file's size and SHA-256 digest
 
 # Libraries whose versions are recorded in every manifest (they change outputs).
 _TRACKED_LIBRARIES = ("numpy", "scipy", "torch", "open3d-cpu", "open3d", "trimesh", "pyrender", "opencv-python-headless", "zarr", "pyarrow")
@@ -104,21 +107,146 @@ def peak_rss_mb() -> float:
     return max(self_kb, child_kb) / 1024.0
 
 
+class DamagedArtifact(RuntimeError):
+    """A published artifact whose files no longer match its manifest (truncated,
+    deleted, altered) or whose manifest is unreadable. The message starts with the item
+    folder, names the file, and says how to rebuild it."""
+
+
+REPAIR_HINT = "run `freeze verify --repair` to remove it, then rerun to rebuild it"
+
+
 def read_manifest(path: Path) -> dict[str, Any]:
-    """Read an artifact's manifest; ``path`` is the item directory or the manifest file."""
+    """Read an artifact's manifest; ``path`` is the item directory or the manifest file.
+    Raises FileNotFoundError when there is none, :class:`DamagedArtifact` when it is not
+    a readable manifest."""
     path = Path(path)
     if path.is_dir():
         path = path / MANIFEST_NAME
     if not path.exists():
         raise FileNotFoundError(f"{path}: no artifact manifest (the artifact is missing or was never completed)")
-    with open(path) as f:
-        return json.load(f)
+    try:
+        content = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DamagedArtifact(f"{path.parent}: {MANIFEST_NAME} is not valid JSON ({e}); {REPAIR_HINT}") from None
+    if not isinstance(content, dict) or "key" not in content:
+        raise DamagedArtifact(f"{path.parent}: {MANIFEST_NAME} is not an artifact manifest (no 'key'); {REPAIR_HINT}")
+    return content
+
+
+# --------------------------------------------------------------------- checksums
+# Every published file's size and SHA-256 digest are recorded in the manifest, so a
+# reader can tell a damaged artifact (truncated chunk, deleted array) from a good one
+# before it reads it. SHA-256 was the fastest of the standard library's hashes here
+# (1.2 GB/s per core with the CPU's SHA instructions; BLAKE2b 0.49 GB/s, measured on
+# 200 MB), far below the cost of computing any artifact.
+
+
+def file_digest(path: Path | str, chunk: int = 1 << 20) -> str:
+    """SHA-256 hex digest of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_table(folder: Path | str) -> dict[str, dict[str, Any]]:
+    """``{relative posix path: {"size": bytes, "sha256": hex}}`` of every file under
+    ``folder`` except the manifest, sorted by path."""
+    folder = Path(folder)
+    out = {}
+    for p in sorted(q for q in folder.rglob("*") if q.is_file() and q.name != MANIFEST_NAME):
+        out[p.relative_to(folder).as_posix()] = {"size": p.stat().st_size, "sha256": file_digest(p)}
+    return out
+
+
+def verify_item(item_dir: Path | str, *, checksums: bool = True) -> list[str]:
+    """Problems of one published artifact item (empty when sound): an unreadable
+    manifest, a listed file missing, of another size or (with ``checksums``) another
+    digest. Files the manifest does not list are not problems (a manifest from before
+    checksums lists none: such an item can only be checked for its manifest)."""
+    item_dir = Path(item_dir)
+    try:
+        manifest = read_manifest(item_dir)
+    except DamagedArtifact as e:
+        return [str(e)]
+    except FileNotFoundError:
+        return [f"{item_dir}: no {MANIFEST_NAME} (never completed, or deleted)"]
+    problems = []
+    files = manifest.get("files")
+    if not isinstance(files, dict):
+        return problems
+    for rel, rec in files.items():
+        p = item_dir / rel
+        try:
+            size = p.stat().st_size
+        except FileNotFoundError:
+            problems.append(f"{item_dir}: {rel} is missing")
+            continue
+        except OSError as e:
+            problems.append(f"{item_dir}: {rel} cannot be read ({e.strerror})")
+            continue
+        if size != rec.get("size"):
+            problems.append(f"{item_dir}: {rel} is {size} bytes, its manifest says {rec.get('size')}")
+        elif checksums and file_digest(p) != rec.get("sha256"):
+            problems.append(f"{item_dir}: {rel} differs from its manifest's checksum")
+    return problems
+
+
+_VERIFIED: dict[Path, tuple] = {}
+
+
+def _stamp(item_dir: Path) -> tuple | None:
+    """(path, size, mtime, inode) of every file of an item: what must not change for an
+    earlier verification to still hold."""
+    try:
+        return tuple((p.as_posix(), st.st_size, st.st_mtime_ns, st.st_ino)
+                     for p in sorted(item_dir.rglob("*")) if (st := p.stat()) and p.is_file())
+    except FileNotFoundError:
+        return None
+
+
+def ensure_sound(item_dir: Path | str) -> None:
+    """Raise :class:`DamagedArtifact` (naming the item, the file and the fix) unless the
+    item verifies (:func:`verify_item`), as every stage does for each input before
+    reading it. An item is hashed once per process while its files keep their sizes,
+    times and inodes."""
+    item_dir = Path(item_dir)
+    if not item_dir.exists():
+        raise FileNotFoundError(f"{item_dir}: this input artifact is not built yet (run its stage first)")
+    stamp = _stamp(item_dir)
+    if stamp is not None and _VERIFIED.get(item_dir) == stamp:
+        return
+    problems = verify_item(item_dir)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise DamagedArtifact(f"damaged artifact: {problems[0]}{more}; {REPAIR_HINT}")
+    if stamp is not None:
+        _VERIFIED[item_dir] = stamp
 
 
 # ------------------------------------------------------------------- atomic writes
 # Every file or folder the project publishes goes through these two context managers:
 # the content is written under a temporary sibling name and renamed into place, so a
 # reader never sees half of it and a killed writer leaves the previous version.
+
+
+class StorageError(OSError):
+    """The disk refused a write (full, over quota, read-only, no permission). The message
+    names the file or folder being published; nothing was published."""
+
+
+# Errors that can only mean the disk refused the write (a PermissionError inside the
+# block may come from reading an input, so it is left as it is there).
+_STORAGE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS}
+
+
+def _storage_error(target: Path, e: OSError) -> StorageError:
+    why = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+           errno.EROFS: "read-only file system"}.get(e.errno, e.strerror or str(e))
+    return StorageError(e.errno, f"{target}: cannot write it ({why}); nothing was published and the previous "
+                                 "version, if any, is intact: free space or fix permissions, then rerun")
 
 
 @contextmanager
@@ -131,6 +259,12 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except StorageError:
+        raise
+    except OSError as e:
+        if e.errno in _STORAGE_ERRNOS:
+            raise _storage_error(path, e) from None
+        raise
     finally:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -144,9 +278,14 @@ def atomic_dir(final_dir: Path | str, prefix: str = ".tmp-") -> Iterator[Path]:
     moved aside first and deleted after) when the block ends normally, and is deleted
     when it raises, leaving ``final_dir`` as it was."""
     final_dir = Path(final_dir)
-    final_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = final_dir.parent / f"{prefix}{final_dir.name}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+    try:
+        final_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as e:
+        if e.errno in _STORAGE_ERRNOS | {errno.EACCES, errno.EPERM}:
+            raise _storage_error(final_dir, e) from None
+        raise
     try:
         yield tmp
         old = None
@@ -156,6 +295,14 @@ def atomic_dir(final_dir: Path | str, prefix: str = ".tmp-") -> Iterator[Path]:
         os.replace(tmp, final_dir)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+    except StorageError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if e.errno in _STORAGE_ERRNOS:
+            raise _storage_error(final_dir, e) from None
+        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -234,6 +381,7 @@ def publish(
         manifest["host"] = platform.node()
         manifest["argv"] = sys.argv
         manifest["libraries"] = library_versions()
+        manifest["files"] = file_table(tmp)
         _write_json_atomic(tmp / MANIFEST_NAME, manifest)
 
 
@@ -279,9 +427,14 @@ def load_arrays(path: Path, names: list[str] | None = None) -> dict[str, np.ndar
 
     if not Path(path).exists():
         raise FileNotFoundError(f"{path}: Zarr store not found")
-    group = zarr.open_group(str(path), mode="r")
-    keys = names if names is not None else sorted(group.array_keys())
-    return {k: np.asarray(group[k][...]) for k in keys}
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        keys = names if names is not None else sorted(group.array_keys())
+        return {k: np.asarray(group[k][...]) for k in keys}
+    except KeyError as e:  # an array deleted, or a store from another version
+        raise DamagedArtifact(f"{path}: no array {e} in the Zarr store; {REPAIR_HINT}") from None
+    except (ValueError, OSError, RuntimeError) as e:  # truncated chunks and metadata
+        raise DamagedArtifact(f"{path}: cannot read the Zarr store ({type(e).__name__}: {e}); {REPAIR_HINT}") from None
 
 
 def load_attrs(path: Path) -> dict[str, Any]:
@@ -312,7 +465,10 @@ def read_table(path: Path):
 
     if not Path(path).exists():
         raise FileNotFoundError(f"{path}: Parquet table not found")
-    return pq.read_table(str(path)).to_pandas()
+    try:
+        return pq.read_table(str(path)).to_pandas()
+    except (ValueError, OSError) as e:  # pyarrow.ArrowInvalid is a ValueError: a truncated or altered file
+        raise DamagedArtifact(f"{path}: cannot read the Parquet table ({e}); {REPAIR_HINT}") from None
 
 
 def table_metadata(path: Path) -> dict[str, Any]:

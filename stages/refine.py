@@ -132,9 +132,34 @@ def _collect(plan: DatasetPlan) -> None:
     prior = read_table(io.input_dir("segment_prior") / "candidates.parquet")
     per_image = image_times(times, prior.groupby(["scene_id", "im_id"]).prior_time.first())
     rows = estimates_rows(poses, per_image)
+    notes = [] if rows else [_no_estimate_note(io, plan)]
+    for note in notes:
+        print(f"warning: {plan.name}: {note}", flush=True)
     with io.publish() as w:
         write_results_csv(w.dir / plan.results_csv_name, rows)
         w.summary.update({"results_csv": plan.results_csv_name, "n_estimates": len(rows),
                           "n_images": int(per_image.size),
                           "mean_time_per_image_s": float(per_image.mean()) if per_image.size else None,
-                          "n_sar_changed": int((poses.sar_variant > 0).sum()) if len(poses) else 0})
+                          "n_sar_changed": int((poses.sar_variant > 0).sum()) if len(poses) else 0,
+                          "notes": notes})
+
+
+def _no_estimate_note(io, plan: DatasetPlan) -> str:
+    """Why a dataset got no estimate at all, from what each stage recorded: the
+    candidates the prior had and those segment_prior dropped, scene_features skipped (by
+    reason, numbers stripped) and register or refine kept none of."""
+    import re
+    from collections import Counter
+
+    from pipeline.store import read_manifest
+
+    prior = read_manifest(io.input_dir("segment_prior")).get("summary", {})
+    reasons = Counter({f"segment_prior: {k}": int(v) for k, v in (prior.get("dropped") or {}).items()})
+    for scene_id in plan.scene_ids:
+        summary = read_manifest(io.input_dir("scene_features", scene_item(scene_id))).get("summary", {})
+        for why in (summary.get("skipped") or {}).values():
+            reasons[f"scene_features: {re.sub(r'^[0-9.]+ ', '', str(why))}"] += 1
+    n_det = prior.get("n_detections", "?")
+    counts = ", ".join(f"{k} ({v})" for k, v in reasons.most_common()) or "no stage recorded a reason"
+    return (f"no estimate: every candidate was dropped ({n_det} detections, {prior.get('n_candidates', '?')} "
+            f"candidates after segment_prior); reasons: {counts}")

@@ -9,6 +9,11 @@ Datasets whose test ground truth is private (ITODD, HB: no ``scene_gt.json`` in 
 distributed test split) cannot be scored here: when a target scene has no
 ``scene_gt.json``, ``scores.json`` says so (:func:`pipeline.metrics.evaluate.unscored_summary`),
 with AR left empty, and the results CSV is the file to submit to the BOP evaluation server.
+
+A results CSV with an R that is not a rotation (:data:`pipeline.metrics.ROTATION_TOLERANCE`)
+fails the stage in both cases, with the message of ``freeze score`` (one line naming the
+file, the number of bad rows and the first one), and nothing is published: scoring it
+would give numbers that mean nothing, submitting it a rejected file.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from __future__ import annotations
 import json
 
 from pipeline.plan import DatasetPlan, missing_ground_truth
+from pipeline.store import read_manifest
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
@@ -39,3 +45,7 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
                                     out_dir=w.dir, n_workers=io.params.n_workers, vsd_delta=plan.dataset.vsd_delta,
                                     progress=progress)
         w.summary.update(scores.summary)
+        # Why there were no estimates (refine's note) belongs next to the AR it explains.
+        upstream_notes = read_manifest(io.input_dir("refine")).get("summary", {}).get("notes") or []
+        if upstream_notes:
+            w.summary["notes"] = list(upstream_notes) + list(w.summary.get("notes") or [])

@@ -52,3 +52,19 @@ def current_dir(work: Path, stage: str, **overrides: str) -> Path:
     from pipeline.plan import RunPlan
 
     return RunPlan(load_run({"datasets": "synthtiny", **overrides}), cache=work / "cache")["synthtiny"][stage].dir
+
+
+@pytest.fixture
+def umask_022():
+    """The process umask set to 022 (and read again) for the test, restored after."""
+    import os
+
+    from pipeline import published_files as files
+
+    old = os.umask(0o022)
+    files.forget_umask()
+    try:
+        yield
+    finally:
+        os.umask(old)
+        files.forget_umask()

@@ -126,6 +126,22 @@ def test_prior_pattern_must_match_one_file(tmp_path):
         resolve_prior(tmp_path, "d/cnos-fastsam_lmo-test*.json")
 
 
+def test_a_relative_prior_must_stay_inside_bop_root(tmp_path):
+    from pipeline.plan import resolve_prior
+
+    root = tmp_path / "bop"
+    root.mkdir()
+    (tmp_path / "elsewhere.json").write_text("[]")
+    with pytest.raises(cfg.ManifestError, match=r"prior '\.\./\.\./\.\./etc/passwd' resolves to .*/etc/passwd, outside "
+                                                r"bop_root .*give the absolute path"):
+        resolve_prior(root, "../../../etc/passwd")  # the case
+    with pytest.raises(cfg.ManifestError, match="outside bop_root"):
+        resolve_prior(root, "../else*.json")
+    # an absolute path is the user's explicit choice
+    assert resolve_prior(root, str(tmp_path / "elsewhere.json")) == (tmp_path / "elsewhere.json").resolve()
+    assert resolve_prior(root, str(tmp_path / "else*.json")) == (tmp_path / "elsewhere.json").resolve()
+
+
 @pytest.mark.slow
 def test_bop_root_from_the_environment(bop_root, monkeypatch):
     monkeypatch.setenv("BOP_ROOT", str(bop_root))

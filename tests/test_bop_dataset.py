@@ -191,18 +191,38 @@ def test_errors_name_file_and_field(tree):
         ds.scene_camera(4)
 
 
-def test_fingerprint_tracks_metadata_only(tree):
+def test_plan_keys_cover_file_contents_and_remember_hashes(tree, tmp_path, monkeypatch):
+    """The keys of a BOP dataset on disk change with any byte the stages read (a model
+    replaced by one of the same size, depth overwritten with zeros), the models key only
+    with the model side's files; a second plan reads no file again."""
+    from pipeline import file_hashes
+    from pipeline.config import DatasetManifest
+    from pipeline.plan import _bop_layout
+
     root, v = tree
-    fp = BopDataset(root).fingerprint()
-    assert len(fp) == 12 and fp == BopDataset(root).fingerprint()
-    save_rgb(root / "test" / "000003" / "rgb" / "000000.png", v["rgb"][5])  # images are not hashed
-    assert BopDataset(root).fingerprint() == fp
-    write_targets(root / "test_targets_bop19.json", v["targets"][:2])
-    fp2 = BopDataset(root).fingerprint()
-    assert fp2 != fp
-    box = trimesh.creation.icosphere()
-    write_ply(root / "models" / "obj_000002.ply", box.vertices, box.faces)
-    assert BopDataset(root).fingerprint() != fp2
+    ds = DatasetManifest(name="tiny", kind="bop", prior="none.json")
+    cache = tmp_path / "cache"
+    hashed = []
+    real_digest = file_hashes.file_digest
+    monkeypatch.setattr(file_hashes, "file_digest", lambda p: hashed.append(p) or real_digest(p))
+
+    objs, scenes, data_key, models_key, has_gt = _bop_layout(root, ds, cache)
+    assert (objs, scenes, has_gt) == ([1, 2], [3], True) and len(data_key) == len(models_key) == 12
+    assert len(hashed) > 10 and (cache / file_hashes.DB_NAME).is_file()
+    hashed.clear()
+    assert _bop_layout(root, ds, cache)[2:4] == (data_key, models_key) and hashed == []  # stat only
+
+    ply = root / "models" / "obj_000002.ply"
+    raw = bytearray(ply.read_bytes())
+    raw[-1] ^= 0xFF  # same size, one byte differs
+    ply.write_bytes(bytes(raw))
+    _, _, data2, models2, _ = _bop_layout(root, ds, cache)
+    assert models2 != models_key and data2 != data_key and hashed == [str(ply.resolve())]
+
+    depth = root / "test" / "000003" / "depth" / "000005.png"
+    save_depth_png(depth, np.zeros_like(v["raw_depth"][5], dtype=np.float64), SCALE)
+    _, _, data3, models3, _ = _bop_layout(root, ds, cache)
+    assert models3 == models2 and data3 != data2
 
 
 def test_split_type_selects_folder_and_camera(tree):

@@ -122,4 +122,4 @@ def test_hope_val_without_depth_and_models(hope):
     np.testing.assert_allclose(mesh.extents, ds.models_info()[2].size_xyz, atol=0.05)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert len(ds.fingerprint()) == 12
+        assert ds.model_folder().name == "models_eval"  # planning reads it without a warning

@@ -232,3 +232,116 @@ def test_estimates_for_unknown_objects_are_ignored(dataset: BopDataset) -> None:
     assert s.summary["n_ignored"] == 3 and s.summary["n_evaluated"] == 6
     assert s.summary["AR"] == 1.0
     assert 99 not in set(s.errors["obj_id"])
+
+
+def _rotation_z(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rotation_deviations() -> None:
+    from pipeline.metrics.evaluate import rotation_deviations
+
+    R = np.stack([_rotation_z(30), np.zeros((3, 3)), 1.01 * np.eye(3), np.diag([1.0, 1.0, -1.0])])
+    ortho, det = rotation_deviations(R)
+    np.testing.assert_allclose(ortho, [0.0, 1.0, 0.0201, 0.0], atol=1e-12)
+    np.testing.assert_allclose(det, [0.0, 1.0, 1.01 ** 3 - 1, 2.0], atol=1e-12)
+    assert rotation_deviations(np.zeros((0, 3, 3)))[0].shape == (0,)
+
+
+@pytest.mark.parametrize("bad, deviation", [
+    (np.zeros((3, 3)), "max|R^T R - I| = 1, |det R - 1| = 1"),       # all-zero R
+    (1.01 * np.eye(3), "max|R^T R - I| = 0.0201, |det R - 1| = 0.0303"),  # scaled by 1%
+    (np.diag([1.0, 1.0, -1.0]), "|det R - 1| = 2"),  # a reflection (R^T R = I up to rounding)
+    (np.array([[1.0, 0.01, 0], [0, 1, 0], [0, 0, 1]]), "max|R^T R - I| = 0.01, "),  # a shear (det 1)
+])
+def test_an_r_that_is_not_a_rotation_is_refused(dataset: BopDataset, bad: np.ndarray, deviation: str) -> None:
+    from pipeline.metrics import NotARotationError
+
+    est = _estimates("gt")
+    for i in (2, 4):
+        est.at[i, "R"] = est.at[i, "R"] @ bad  # (R B)^T (R B) = B^T B: the deviation is that of B
+    r = est.iloc[2]
+    with pytest.raises(NotARotationError) as info:
+        evaluate(est, dataset, progress=False)
+    msg = str(info.value)
+    assert msg.startswith(f"results: 2 of 6 estimates have an R that is not a rotation (max|R^T R - I| or "
+                          f"|det R - 1| above 0.001); first: estimate 3 (scene_id {r.scene_id}, im_id {r.im_id}, "
+                          f"obj_id {r.obj_id}) with max|R^T R - I| = ")
+    assert deviation in msg
+    assert "\n" not in msg and isinstance(info.value, ValueError)
+
+
+def test_rotations_within_the_tolerance_score_as_the_toolkit(dataset: BopDataset) -> None:
+    """R written with few digits (deviation 1e-4 < ROTATION_TOLERANCE) is accepted and
+    scores as the exact one."""
+    from pipeline.metrics import ROTATION_TOLERANCE
+    from pipeline.metrics.evaluate import rotation_deviations
+
+    est = _estimates("tx20")
+    rounded = est.copy()
+    rounded["R"] = [np.round(R, 4) for R in est["R"]]
+    ortho, det = rotation_deviations(np.stack(rounded["R"]))
+    assert 0 < max(ortho.max(), det.max()) < ROTATION_TOLERANCE
+    a, b = evaluate(est, dataset, progress=False).summary, evaluate(rounded, dataset, progress=False).summary
+    for key in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD"):
+        assert b[key] == pytest.approx(a[key], abs=1e-3), key
+    assert a["AR"] == pytest.approx(REF["tx20"]["bop19"]["bop19_average_recall"], abs=1e-3)
+
+
+def test_results_file_with_a_bad_r_names_the_file_and_writes_nothing(tmp_path: Path) -> None:
+    from pipeline.bop import BopFormatError
+    from pipeline.metrics.evaluate import unscored_summary
+
+    est = _estimates("gt")
+    est.at[5, "R"] = np.zeros((3, 3))
+    csv = tmp_path / "zero_icbin-test.csv"
+    write_results_csv(csv, est)
+    out = tmp_path / "out"
+    with pytest.raises(BopFormatError, match=rf"^{csv}: 1 of 6 estimates have an R that is not a rotation .*"
+                                             r"first: estimate 6 \(scene_id 1, im_id \d+, obj_id \d+\)"):
+        score_results_file(csv, DATA / "icbin", out_dir=out)
+    assert not out.exists()
+    # the private-ground-truth path (nothing scored, the file is for the BOP server) refuses it too
+    with pytest.raises(BopFormatError, match=rf"^{csv}: 1 of 6 estimates"):
+        unscored_summary(csv, [], "no ground truth")
+
+
+def test_score_stage_fails_on_a_bad_r_and_publishes_nothing(tmp_path: Path) -> None:
+    """stages/score.py, scored and unscored (private ground truth): the same one-line
+    error as `freeze score`, raised inside the publish block, so nothing is published."""
+    import contextlib
+    from types import SimpleNamespace
+
+    from pipeline.metrics import NotARotationError
+    from stages import score as score_stage
+
+    est = _estimates("gt")
+    est.at[1, "R"] = 2 * np.eye(3)
+    refine = tmp_path / "refine"
+    refine.mkdir()
+    csv = refine / "freeze_icbin-test.csv"
+    write_results_csv(csv, est)
+    published = []
+
+    @contextlib.contextmanager
+    def publish():
+        w = SimpleNamespace(dir=tmp_path / "tmp-score", summary={})
+        w.dir.mkdir()
+        yield w
+        published.append(w)  # reached only when the block ends normally
+
+    for public_gt in (True, False):
+        root = tmp_path / f"root{public_gt}"
+        shutil.copytree(DATA / "icbin", root)
+        if not public_gt:
+            (root / "test" / "000001" / "scene_gt.json").unlink()
+        io = SimpleNamespace(input_dir=lambda stage: refine, bop=lambda: BopDataset(root), publish=publish,
+                             params=SimpleNamespace(n_workers=1))
+        plan = SimpleNamespace(io=lambda stage, item: io, results_csv_name=csv.name, scene_ids=[1], root=root,
+                               dataset=SimpleNamespace(public_gt=public_gt, targets_file="test_targets_bop19.json",
+                                                       split="test", split_type=None, vsd_delta=15.0))
+        with pytest.raises(NotARotationError, match=rf"^{csv}: 1 of 6 estimates .* first: estimate 2 "):
+            score_stage.run(plan, "all", progress=False)
+        shutil.rmtree(tmp_path / "tmp-score")
+    assert published == []

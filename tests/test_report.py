@@ -335,3 +335,325 @@ def test_report_renders_in_chromium(request, tmp_path):
 
     assert has((0x28, 0xC8, 0x3C)) == ("correct" in kinds)
     assert has((0xE6, 0x28, 0x28)) == ("wrong" in kinds)
+
+
+# ------------------------------------------------------------ empty, NaN and inf inputs
+# The report is built from whatever the artifacts hold. These tests build its inputs
+# (scores.json, the estimate table, stage manifests, refine's tables, SAR cases) with
+# empty, all-NaN and infinite columns around a stand-in plan, and check that the page
+# and every figure are still produced, with "no data" where nothing can be drawn.
+
+NAN, INF = float("nan"), float("inf")
+
+
+def _png_ok(png: bytes) -> None:
+    from PIL import Image
+
+    assert png[:8] == PNG_SIGNATURE
+    with Image.open(io.BytesIO(png)) as im:
+        im.load()
+        assert im.width > 50 and im.height > 50
+
+
+class _Stage:
+    """What the report reads of a stage plan: name, signature, folder, item folders."""
+
+    def __init__(self, root: Path, stage: str):
+        self.stage, self.signature, self.dir = stage, f"{stage}-00000000", root / stage / f"{stage}-00000000"
+
+    def item_dir(self, item: str) -> Path:
+        return self.dir / item
+
+
+class _Plan:
+    """A stand-in dataset plan: stages under ``root``, no dataset behind it."""
+
+    def __init__(self, root: Path, scene_ids: list[int]):
+        from types import SimpleNamespace
+
+        self.name = "fake"
+        self.dataset = SimpleNamespace(kind="synthetic", split="test")
+        self.obj_ids, self.scene_ids = [1, 2], scene_ids
+        self.results_csv_name = "freeze_fake-test.csv"
+        self.stages = {s: _Stage(root, s) for s in ("synth", "refine", "register", "score")}
+
+    def __getitem__(self, stage: str) -> _Stage:
+        return self.stages[stage]
+
+
+class _RunPlan:
+    def __init__(self, root: Path, plan: _Plan):
+        from types import SimpleNamespace
+
+        self.plan, self.cache = plan, root / "cache"
+        enc = {"manifest": "m", "signature": "s", "version": 1}
+        self.encoders = {"geometric": enc, "visual": enc}
+        self.run = SimpleNamespace(method="freeze", model_dump=lambda: {"method": "freeze"})
+
+    def __getitem__(self, dataset: str) -> _Plan:
+        return self.plan
+
+
+def _manifest(path: Path, wall, peak) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # json.dumps writes NaN and inf as NaN / Infinity, which json.loads reads back
+    path.write_text(json.dumps({"key": "k", "wall_time_s": wall, "peak_rss_mb": peak}))
+
+
+def _scores(kind: str) -> dict:
+    """scores.json: "empty" (no rows, None values) or "nonfinite" (NaN and inf)."""
+    if kind == "empty":
+        return {"summary": {"AR": None, "AR_VSD": None, "AR_MSSD": None, "AR_MSPD": None, "n_targets": 0,
+                            "n_estimates": 0, "n_evaluated": 0, "mean_time_per_image": None, "notes": []},
+                "recalls": {"vsd": [], "mssd": [], "mspd": []}, "per_object": [], "per_visibility": []}
+    bins = [{"visib_min": i / 10, "visib_max": (i + 1) / 10, "n_targets": [None, NAN, INF, -3, 0][i % 5],
+             "AR": [None, NAN, INF, -INF, NAN][i % 5], "AR_VSD": NAN, "AR_MSSD": None, "AR_MSPD": INF}
+            for i in range(10)]
+    bins.append({"visib_min": NAN, "visib_max": INF, "n_targets": 4, "AR": 0.5})  # a bin without edges
+    return {"summary": {"AR": NAN, "AR_VSD": INF, "AR_MSSD": -INF, "AR_MSPD": None, "n_targets": 3,
+                        "n_estimates": 5, "n_evaluated": 5, "mean_time_per_image": INF, "notes": ["x"]},
+            "recalls": {"vsd": [[NAN] * 10, [INF] * 10], "mssd": [NAN] * 10, "mspd": [INF, None] + [NAN] * 7},
+            "per_object": [{"obj_id": 1, "AR": NAN, "AR_VSD": INF, "AR_MSSD": None, "AR_MSPD": -INF,
+                            "n_targets": NAN}, {"obj_id": None, "AR": 1.0}],
+            "per_visibility": bins}
+
+
+def _estimates(kind: str) -> pd.DataFrame:
+    from pipeline.report.html import empty_estimate_table
+
+    if kind == "empty":
+        return empty_estimate_table()
+    return pd.DataFrame({"scene_id": 1, "im_id": [0, 1, 2], "obj_id": [1, 1, 2], "est_id": 0,
+                         "score": [NAN, INF, 0.5], "R": [np.eye(3)] * 3, "t": [np.zeros(3)] * 3,
+                         "gt_id": [0, -1, 0], "mssd": [NAN, INF, 3.0], "mspd": [INF, NAN, 1.0],
+                         "visib": [NAN, INF, 0.5], "diameter": [100.0, 0.0, NAN],
+                         "mssd_frac": [NAN, INF, NAN], "correct": [False, False, True]})
+
+
+def _fake_run(tmp_path: Path, kind: str, monkeypatch) -> _RunPlan:
+    """A run whose artifacts hold ``kind`` ("empty" or "nonfinite") values."""
+    from pipeline.plan import scene_item
+    from pipeline.report import html, hypotheses_figure, sar_figure
+    from pipeline.report.sar_figure import SarCase
+
+    plan = _Plan(tmp_path / "cache" / "fake", scene_ids=[] if kind == "empty" else [1])
+    if kind == "nonfinite":
+        for i, (wall, peak) in enumerate([(NAN, INF), (INF, None), (None, NAN)]):
+            _manifest(plan["register"].item_dir(f"scene_{i}") / "_manifest.json", wall, peak)
+        _manifest(plan["refine"].item_dir("all") / "_manifest.json", 2.0, 100.0)
+        refine = plan["refine"].item_dir(scene_item(1))
+        refine.mkdir(parents=True)
+        pd.DataFrame({"source": ["fused", "fused", "geometric"], "hyp": [0, 1, 0], "chosen": [True, False, False],
+                      "verification": [NAN, INF, NAN], "obj_id": 1, "cand_id": 0}).to_parquet(
+            refine / "hypotheses.parquet")
+        pd.DataFrame({"obj_id": [1, 2], "variant": 0, "chosen": True}).to_parquet(refine / "sar.parquet")
+        reg = plan["register"].item_dir(scene_item(1))
+        reg.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame({"status": "ok", "hyp": 0, "obj_id": [1, 1], "cand_id": [0, 1], "signal_geometric": [INF, 1.0],
+                      "signal_visual": [NAN, -INF], "w_geometric": [NAN, NAN], "w_visual": [INF, 0.5]}).to_parquet(
+            reg / "candidates.parquet")
+
+    def cases(plan, obj_id, limit=3):  # SAR similarities: none, all NaN, inf and NaN
+        img = np.full((32, 32, 3), 128, np.uint8)
+        mask = np.zeros((32, 32), bool)
+        sims = {1: [np.array([]), np.array([NAN, NAN])], 2: [np.array([INF, NAN, 0.3, -INF])]}[obj_id]
+        return [SarCase(img, img, mask, img, mask, s, chosen=min(1, len(s) - 1) if len(s) else 0, title="t")
+                for s in sims]
+
+    monkeypatch.setattr(sar_figure, "sar_cases", cases)
+    monkeypatch.setattr(hypotheses_figure, "hypothesis_cases", lambda plan, limit=4: [])
+    monkeypatch.setattr(html, "read_scores", lambda plan: _scores(kind))
+    monkeypatch.setattr(html, "estimate_table", lambda plan: _estimates(kind))
+    monkeypatch.setattr(html, "draw_samples", lambda plan, samples, size=PANEL_SIZE: [])  # no images to render on
+    return _RunPlan(tmp_path, plan)
+
+
+@pytest.mark.parametrize("kind", ["empty", "nonfinite"])
+def test_report_is_written_from_empty_nan_and_inf_artifacts(tmp_path, monkeypatch, kind):
+    from pipeline.report import html, plots
+
+    notes = []
+    real = plots.no_data_figure
+    monkeypatch.setattr(plots, "no_data_figure", lambda note="", **kw: notes.append(note) or real(note, **kw))
+    rp = _fake_run(tmp_path, kind, monkeypatch)
+    out = html.write_report(rp, "fake", tmp_path / "results" / "report.html", samples=2)
+    text = out.read_text(encoding="utf-8")
+    page = _Page()
+    page.feed(text)
+    for src in page.images:
+        _png_ok(base64.b64decode(src.split(",", 1)[1]))
+    [row] = page.tables["summary"]
+    assert row["AR"] == row["AR_VSD"] == row["AR_MSSD"] == row["AR_MSPD"] == "-"
+    assert row["mean_time_per_image"] == "-"
+    if kind == "empty":
+        assert page.tables["per-object"] == [] and "no per-visibility breakdown" in text
+        assert "SAR ran on no estimate" in text and "hypotheses" not in page.tables
+        return
+    # NaN/inf recalls are "-" (means over tau too), never "nan" or "inf" in a cell
+    cells = [v for rows in page.tables.values() for r in rows for v in r.values()]
+    assert not [c for c in cells if re.search(r"\b(nan|inf)\b", c, re.I)]
+    assert {r["metric"] for r in page.tables["recall"]} == {"recall"}
+    assert all(v == "-" for r in page.tables["recall"] for k, v in r.items() if k != "metric")
+    [obj] = page.tables["per-object"]  # the row without an object is left out
+    assert obj["obj_id"] == "1" and obj["AR"] == "-" and obj["correct"] == "0 / 2"
+    # the bins hold no finite recall and no target: the visibility chart says "no data"
+    assert any("no target in any visible-fraction bin" in n for n in notes)
+    timing = {r["stage"]: r for r in page.tables["timing"]}
+    assert timing["register"]["jobs"] == "3" and timing["register"]["wall_s"] == "-"
+    assert timing["register"]["peak_rss_mb"] == "-" and timing["register"]["share"] == "0.0%"
+    assert timing["refine"]["wall_s"] == "2.0" and timing["refine"]["share"] == "100.0%"
+    [hyp] = [r for r in page.tables["hypotheses"] if r["source"] == "fused"]
+    assert hyp["hypotheses"] == "2" and hyp["mean_score"] == "-"
+    assert len([f for f in page.figures if f == "sar"]) == 2  # both objects' SAR figures drawn
+
+
+def test_visibility_figure_takes_empty_nan_and_inf_bins(monkeypatch):
+    from pipeline.report import plots
+
+    notes = []
+    real = plots.no_data_figure
+    monkeypatch.setattr(plots, "no_data_figure", lambda note="", **kw: notes.append(note) or real(note, **kw))
+    full = [{"visib_min": i / 10, "visib_max": (i + 1) / 10, "n_targets": 2, "AR": 0.1 * i, "AR_VSD": 0.2,
+             "AR_MSSD": 0.3, "AR_MSPD": 0.4} for i in range(10)]
+    cases = {
+        "no bins": [],
+        "no edges": [{"visib_min": None, "visib_max": NAN, "n_targets": 3, "AR": 0.5}],
+        "all NaN": [{**b, "n_targets": NAN, "AR": NAN, "AR_VSD": NAN, "AR_MSSD": NAN, "AR_MSPD": NAN} for b in full],
+        "inf": [{**b, "n_targets": INF, "AR": INF, "AR_VSD": -INF} for b in full],
+        "counts only": [{**b, "AR": None, "AR_VSD": None, "AR_MSSD": None, "AR_MSPD": None} for b in full],
+        "some inf": [{**b, "AR": INF if i % 2 else b["AR"], "n_targets": INF if i == 3 else 2}
+                     for i, b in enumerate(full)],
+    }
+    for name, bins in cases.items():
+        _png_ok(plots.visibility_figure(bins, title=name))
+    # nothing to draw at all: a figure saying so, not an empty chart
+    assert len(notes) == 3 and all(n.startswith(plots.NO_DATA) for n in notes)
+
+
+def test_timing_figure_takes_empty_nan_and_inf_values(monkeypatch):
+    from pipeline.report import plots
+
+    _png_ok(plots.timing_figure([], [], []))
+    _png_ok(plots.timing_figure(["a", "b"], [NAN, NAN], [NAN, NAN]))
+    _png_ok(plots.timing_figure(["a", "b", "c"], [INF, 2.0, None], [-INF, INF, 300.0]))
+    _png_ok(plots.timing_figure(["a"], [0.0], [0.0]))
+    with pytest.raises(ValueError, match="2 stages but 1 wall times"):
+        plots.timing_figure(["a", "b"], [1.0], [1.0, 2.0])
+
+
+def test_sar_figure_takes_empty_nan_and_inf_similarities(tmp_path):
+    from PIL import Image
+
+    from pipeline.report.sar_figure import SarCase, draw_sar_figure
+
+    img = np.full((24, 24, 3), 90, np.uint8)
+    mask = np.zeros((24, 24), bool)
+    mask[8:16, 8:16] = True
+    sims = [np.array([]), np.array([NAN, NAN, NAN]), np.array([INF, -INF]), np.array([NAN, 0.4, INF, 0.2])]
+    cases = [SarCase(img, img, mask, img, mask, s, chosen=1 if len(s) > 1 else 0, title=f"case {i}")
+             for i, s in enumerate(sims)]
+    out = draw_sar_figure(cases, tmp_path / "sar.png", title="degenerate")
+    with Image.open(out) as im:
+        assert im.height > 4 * 150
+    out = draw_sar_figure([], tmp_path / "none.png")  # no case at all: an empty figure, not an error
+    assert out.exists()
+
+
+def test_features_figure_takes_nan_inf_and_empty_clouds(tmp_path):
+    from PIL import Image
+
+    from pipeline.report.features_figure import DPI, FIGSIZE, FeatureCase, draw_features_figure, pca_colours
+
+    rng = np.random.default_rng(0)
+    model = rng.normal(size=(60, 3)) * 30
+    feats = rng.normal(size=(60, 8))
+    bad_feats = feats.copy()
+    bad_feats[:5] = NAN
+    bad_feats[5, 2] = INF
+    cm, cs, e = pca_colours(bad_feats, bad_feats[:10])
+    assert np.all(cm[:6] == 0.5) and np.all(np.isfinite(cm)) and 0 < e <= 1
+    # rows left out of the fit do not change the others' colours
+    cm_good, _, _ = pca_colours(feats[6:], feats[:1])
+    assert np.array_equal(cm[6:], cm_good)
+    assert np.all(pca_colours(np.full((4, 3), NAN), np.zeros((2, 3)))[0] == 0.5)
+    assert pca_colours(np.zeros((0, 3)), np.zeros((2, 3)))[1].shape == (2, 3)
+
+    def case(scene_pts, scene_feats, model_pts=model, diameter=100.0, t=(0.0, 0.0, 600.0)):
+        parts = {"geometric": (feats, scene_feats), "visual": (feats, scene_feats), "fused": (feats, scene_feats)}
+        return FeatureCase(dataset="d", obj_id=1, scene_id=1, im_id=0, cand_id=0, model_points=model_pts,
+                           scene_points=scene_pts, parts=parts, R=np.eye(3), t=np.array(t), diameter=diameter,
+                           inlier_threshold=5.0)
+
+    scene = model[:20] + np.array([0, 0, 600.0])
+    nan_scene = scene.copy()
+    nan_scene[::2] = NAN
+    inf_model = model.copy()
+    inf_model[:10] = INF
+    variants = {
+        "empty scene": case(np.zeros((0, 3)), np.zeros((0, 8))),
+        "all-NaN scene": case(np.full((20, 3), NAN), feats[:20]),
+        "NaN points and features": case(nan_scene, bad_feats[:20]),
+        "inf model points, NaN diameter": case(scene, feats[:20], model_pts=inf_model, diameter=NAN),
+        "nothing finite": case(np.full((5, 3), INF), feats[:5], model_pts=np.full((60, 3), NAN), diameter=INF),
+        "inf pose": case(scene, feats[:20], t=(INF, 0.0, 600.0)),
+    }
+    for name, c in variants.items():
+        out = draw_features_figure(c, tmp_path / f"{name}.png")
+        with Image.open(out) as im:
+            assert im.size == (round(FIGSIZE[0] * DPI), round(FIGSIZE[1] * DPI)), name
+
+
+def test_recall_table_shows_dashes_for_missing_values():
+    from pipeline.report.html import _recall_table
+
+    page = _Page()
+    page.feed(_recall_table({"vsd": [[NAN] * 10, [0.5] * 10, [INF] * 10], "mssd": [None] * 10, "mspd": [0.1, 0.2]}))
+    vsd, mssd, mspd = page.tables["recall"]
+    assert all(v == "0.50" for k, v in vsd.items() if k != "metric")  # the mean of the finite taus
+    assert all(v == "-" for k, v in {**mssd, **mspd}.items() if k != "metric")  # none, or not 10 values
+    assert _recall_table({"vsd": [], "mssd": None}) == ""
+
+
+# ------------------------------------------------------------------- file modes
+
+
+def _private_tmp(monkeypatch):
+    """Make pipeline.published_files' atomic_path hand out temporary files created 0600, as
+    a secure temp-file call does: the published file's mode must not depend on it."""
+    import contextlib
+    import os
+
+    from pipeline import published_files as files
+    from pipeline.store import atomic_path
+
+    @contextlib.contextmanager
+    def private(path):
+        with atomic_path(path) as tmp:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            yield tmp
+
+    monkeypatch.setattr(files, "atomic_path", private)
+
+
+@pytest.mark.parametrize("private", [False, True], ids=["open", "private-tmp"])
+def test_report_files_follow_the_umask(tmp_path, monkeypatch, umask_022, private):
+    import os
+    import stat
+
+    from pipeline.report import html, plots
+
+    if private:
+        _private_tmp(monkeypatch)
+    rp = _fake_run(tmp_path, "empty", monkeypatch)
+    page = html.write_report(rp, "fake", tmp_path / "results" / "report_fake.html", samples=0)
+    assert stat.S_IMODE(page.stat().st_mode) == 0o644
+    fig = plots._plt().figure()
+    png = plots.save_figure(fig, tmp_path / "results" / "figures" / "f.png")
+    assert stat.S_IMODE(png.stat().st_mode) == 0o644
+    from pipeline import published_files as files
+
+    os.umask(0o027)  # another umask, read again: the mode follows it
+    files.forget_umask()
+    page = html.write_report(rp, "fake", tmp_path / "results" / "report_fake.html", samples=0)
+    assert stat.S_IMODE(page.stat().st_mode) == 0o640
+    assert sorted(p.name for p in page.parent.iterdir()) == ["figures", "report_fake.html"]  # no temporary left

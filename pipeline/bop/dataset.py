@@ -16,7 +16,6 @@ raw integers times ``depth_scale`` = mm. JSON files are parsed once per instance
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,7 @@ import numpy as np
 import trimesh
 
 from .errors import BopFormatError
-from .jsonio import load_json, save_bop_json
+from .jsonio import brief, load_json, save_bop_json
 from .ply import load_mesh
 
 _RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -113,6 +112,7 @@ class Target:
 
 
 def _get(path: Path, d: Any, key: str, entry: Any = None) -> Any:
+    """Field ``key`` of the JSON object ``d`` (entry ``entry`` of the file at ``path``)."""
     if not isinstance(d, dict):
         where = f"entry {entry}: " if entry is not None else ""
         raise BopFormatError(f"{path}: {where}expected an object, got {type(d).__name__}")
@@ -123,47 +123,81 @@ def _get(path: Path, d: Any, key: str, entry: Any = None) -> Any:
 
 
 def _floats(path: Path, value: Any, n: int, key: str, entry: Any = None) -> np.ndarray:
+    """(n,) float64 of a JSON number or (nested) list of numbers, all finite.
+
+    Strings, bools and ints beyond float64 are refused: numpy would parse "1.5", count
+    True as 1, or raise OverflowError.
+    """
     try:
-        arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
+        arr = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nested lists
         arr = None
-    if arr is None or arr.size != n or not np.all(np.isfinite(arr)):
+    ok = arr is not None and arr.dtype.kind in "iuf" and arr.size == n
+    if ok:
+        arr = arr.astype(np.float64).reshape(-1)
+        ok = bool(np.all(np.isfinite(arr)))
+    if not ok:
         where = f"entry {entry}, " if entry is not None else ""
-        raise BopFormatError(f"{path}: {where}field '{key}': expected {n} finite numbers, got {value!r}")
+        raise BopFormatError(f"{path}: {where}field '{key}': expected {n} finite numbers, got {brief(value)}")
     return arr
 
 
 def _int(path: Path, value: Any, key: str, entry: Any = None) -> int:
+    """A JSON integer (an integral float such as 3.0 is accepted)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or (isinstance(value, float) and not value.is_integer()):
         where = f"entry {entry}, " if entry is not None else ""
-        raise BopFormatError(f"{path}: {where}field '{key}': expected an integer, got {value!r}")
+        raise BopFormatError(f"{path}: {where}field '{key}': expected an integer, got {brief(value)}")
     return int(value)
 
 
 def _int_key(path: Path, key: str) -> int:
-    try:
-        return int(key)
-    except ValueError:
-        raise BopFormatError(f"{path}: key '{key}' is not an integer id") from None
+    """The id of a JSON object key: ASCII digits ("7", "000007"); int() would also take
+    " 7", "1_0" and other scripts' digits."""
+    if not (isinstance(key, str) and key.isascii() and key.isdigit() and len(key) <= 18):
+        raise BopFormatError(f"{path}: key {brief(key)} is not an integer id")
+    return int(key)
+
+
+def _id_items(path: Path, content: Any, what: str) -> list[tuple[int, str, Any]]:
+    """(id, key, value) of a JSON object keyed by ids (``what``: "im_id", "obj_id").
+
+    Two keys of the same id ("1" and "01") would silently overwrite each other.
+    """
+    if not isinstance(content, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by {what}, got {type(content).__name__}")
+    keys: dict[int, str] = {}
+    out = []
+    for key, value in content.items():
+        i = _int_key(path, key)
+        if i in keys:
+            raise BopFormatError(f"{path}: key {brief(key)} repeats id {i} (key {brief(keys[i])})")
+        keys[i] = key
+        out.append((i, key, value))
+    return out
+
+
+def _json_list(path: Path, value: Any, what: str, entry: Any = None) -> list:
+    """``value`` if it is a JSON list, else BopFormatError naming ``what``."""
+    if not isinstance(value, list):
+        where = f"entry {entry}, " if entry is not None else ""
+        raise BopFormatError(f"{path}: {where}field '{what}': expected a list, got {type(value).__name__}")
+    return value
 
 
 def parse_models_info(path: Path, content: Any) -> dict[int, ModelInfo]:
     """ModelInfo per obj_id from the parsed JSON of a models_info.json file."""
-    if not isinstance(content, dict):
-        raise BopFormatError(f"{path}: expected an object keyed by obj_id")
     out: dict[int, ModelInfo] = {}
-    for key, d in content.items():
-        obj_id = _int_key(path, key)
+    for obj_id, _, d in _id_items(path, content, "obj_id"):
         e = f"obj {obj_id}"
         diameter = float(_floats(path, _get(path, d, "diameter", e), 1, "diameter", e)[0])
         mins = np.array([float(_floats(path, _get(path, d, f"min_{a}", e), 1, f"min_{a}", e)[0]) for a in "xyz"])
         sizes = np.array([float(_floats(path, _get(path, d, f"size_{a}", e), 1, f"size_{a}", e)[0]) for a in "xyz"])
         disc = [
             _floats(path, s, 16, f"symmetries_discrete[{i}]", e).reshape(4, 4)
-            for i, s in enumerate(d.get("symmetries_discrete", []))
+            for i, s in enumerate(_json_list(path, d.get("symmetries_discrete", []), "symmetries_discrete", e))
         ]
         cont = []
-        for i, s in enumerate(d.get("symmetries_continuous", [])):
+        for i, s in enumerate(_json_list(path, d.get("symmetries_continuous", []), "symmetries_continuous", e)):
             k = f"symmetries_continuous[{i}]"
             cont.append(
                 {
@@ -191,6 +225,38 @@ def decoded_to_rgb(im: np.ndarray, path: Path | str) -> np.ndarray:
     if im.shape[2] == 4:
         return cv2.cvtColor(im, cv2.COLOR_BGRA2RGB)
     return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
+
+
+def depth_format_problem(raw: np.ndarray) -> str | None:
+    """None if ``raw`` (a depth image as ``cv2.imread(..., IMREAD_UNCHANGED)`` returns
+    it) is usable depth, else a one-line reason. The one rule for depth images, shared
+    by the dataset reader, ``freeze datasets check --deep`` and ``freeze estimate``:
+    a single channel of uint16 (BOP's PNG/TIF, value * depth_scale = mm) or of floats
+    (float TIFFs, read the same way). 8-bit depth is refused: 256 levels cannot hold a
+    scene's depth, so such a file is a visualisation or a wrongly saved export, and
+    reading it would give wrong poses without a word."""
+    channels = 1 if raw.ndim == 2 else raw.shape[2]
+    if channels == 1 and (raw.dtype == np.uint16 or np.issubdtype(raw.dtype, np.floating)):
+        return None
+    got = f"{channels}-channel {raw.dtype}" if channels != 1 else f"{raw.dtype}"
+    return f"depth must be 16-bit single-channel PNG/TIF, got {got}"
+
+
+def read_depth_image(path: Path | str) -> np.ndarray:
+    """The raw (H, W) depth image at ``path``: uint16 (or float) depth units, not yet
+    multiplied by depth_scale. Raises ``BopFormatError`` naming the file when it cannot
+    be decoded or breaks :func:`depth_format_problem`."""
+    # IMREAD_UNCHANGED, not IMREAD_ANYDEPTH: the latter folds 3 channels to grey silently,
+    # hiding a colourised depth export.
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise BopFormatError(f"{path}: cannot decode depth image")
+    problem = depth_format_problem(raw)
+    if problem:
+        raise BopFormatError(f"{path}: {problem}")
+    if raw.ndim == 3:  # a single channel kept as (H, W, 1) by some decoders
+        raw = raw[:, :, 0]
+    return raw
 
 
 class BopDataset:
@@ -251,7 +317,10 @@ class BopDataset:
     def camera(self) -> dict:
         """Contents of camera.json plus ``K`` (3, 3) float64 built from fx, fy, cx, cy."""
         path = self.camera_path()
-        cam = dict(self._json(path))
+        cam = self._json(path)
+        if not isinstance(cam, dict):
+            raise BopFormatError(f"{path}: expected an object with fx, fy, cx, cy, got {type(cam).__name__}")
+        cam = dict(cam)  # a copy: the parsed JSON is cached
         fx, fy, cx, cy = (float(_floats(path, _get(path, cam, k), 1, k)[0]) for k in ("fx", "fy", "cx", "cy"))
         cam["K"] = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         return cam
@@ -334,17 +403,22 @@ class BopDataset:
         if scene_id not in self._scene_camera:
             path = self.scene_dir(scene_id) / "scene_camera.json"
             content = self._json(path)
-            cam = self._json(self.camera_path()) if self.camera_path().is_file() else {}
-            width, height = self._image_size(scene_id, cam)
+            cam_path = self.camera_path()
+            cam = self._json(cam_path) if cam_path.is_file() else {}
+            if not isinstance(cam, dict):
+                raise BopFormatError(f"{cam_path}: expected an object with fx, fy, cx, cy, got {type(cam).__name__}")
+            # Validated here so that _image_size gets ints (it falls back to an image's size).
+            size = {k: _int(cam_path, cam[k], k) for k in ("width", "height") if k in cam}
+            width, height = self._image_size(scene_id, size if len(size) == 2 else {})
+            cam_scale = float(_floats(cam_path, cam["depth_scale"], 1, "depth_scale")[0]) if "depth_scale" in cam else None
             out = {}
-            for key, d in content.items():
-                im_id = _int_key(path, key)
-                e = f"'{key}'"
+            for im_id, key, d in _id_items(path, content, "im_id"):
+                e = brief(key)
                 K = _floats(path, _get(path, d, "cam_K", e), 9, "cam_K", e).reshape(3, 3)
                 if "depth_scale" in d:
                     scale = float(_floats(path, d["depth_scale"], 1, "depth_scale", e)[0])
-                elif "depth_scale" in cam:
-                    scale = float(cam["depth_scale"])
+                elif cam_scale is not None:
+                    scale = cam_scale
                 else:
                     raise BopFormatError(f"{path}: entry {e}, field 'depth_scale' missing (and not in camera.json)")
                 R_w2c = t_w2c = None
@@ -360,11 +434,12 @@ class BopDataset:
         if scene_id not in self._scene_gt:
             path = self.scene_dir(scene_id) / "scene_gt.json"
             out = {}
-            for key, items in self._json(path).items():
-                im_id = _int_key(path, key)
+            for im_id, key, items in _id_items(path, self._json(path), "im_id"):
+                if not isinstance(items, list):
+                    raise BopFormatError(f"{path}: entry {brief(key)}: expected a list of instances, got {type(items).__name__}")
                 poses = []
                 for gt_id, d in enumerate(items):
-                    e = f"'{key}'[{gt_id}]"
+                    e = f"{brief(key)}[{gt_id}]"
                     poses.append(
                         GtPose(
                             obj_id=_int(path, _get(path, d, "obj_id", e), "obj_id", e),
@@ -381,15 +456,19 @@ class BopDataset:
         if scene_id not in self._scene_gt_info:
             path = self.scene_dir(scene_id) / "scene_gt_info.json"
             out = {}
-            for key, items in self._json(path).items():
-                im_id = _int_key(path, key)
+            for im_id, key, items in _id_items(path, self._json(path), "im_id"):
+                if not isinstance(items, list):
+                    raise BopFormatError(f"{path}: entry {brief(key)}: expected a list of instances, got {type(items).__name__}")
                 infos = []
                 for gt_id, d in enumerate(items):
-                    e = f"'{key}'[{gt_id}]"
-                    boxes = {
-                        k: tuple(int(v) for v in _floats(path, _get(path, d, k, e), 4, k, e))
-                        for k in ("bbox_obj", "bbox_visib")
-                    }
+                    e = f"{brief(key)}[{gt_id}]"
+                    boxes = {}
+                    for k in ("bbox_obj", "bbox_visib"):  # (x, y, w, h) px: integers, not truncated floats
+                        value = _get(path, d, k, e)
+                        box = _floats(path, value, 4, k, e)
+                        if not all(v.is_integer() for v in box.tolist()):
+                            raise BopFormatError(f"{path}: entry {e}, field '{k}': expected 4 integers, got {brief(value)}")
+                        boxes[k] = tuple(int(v) for v in box.tolist())
                     counts = {
                         k: _int(path, _get(path, d, k, e), k, e)
                         for k in ("px_count_all", "px_count_valid", "px_count_visib")
@@ -431,13 +510,12 @@ class BopDataset:
         return self.depth_path(scene_id, im_id) is not None
 
     def load_depth(self, scene_id: int, im_id: int) -> np.ndarray:
-        """(H, W) float32 depth in mm (raw * depth_scale), 0 where invalid."""
+        """(H, W) float32 depth in mm (raw * depth_scale), 0 where invalid. The file must
+        be 16-bit single-channel (or float); see :func:`depth_format_problem`."""
         path = self.depth_path(scene_id, im_id)
         if path is None:
             raise BopFormatError(f"{self.scene_dir(scene_id)}: no depth/ image for im_id {im_id} (dataset without depth?)")
-        raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
-        if raw is None:
-            raise BopFormatError(f"{path}: cannot decode depth image")
+        raw = read_depth_image(path)  # refuses 8-bit and multi-channel depth, naming the file
         cams = self.scene_camera(scene_id)
         if im_id not in cams:
             raise BopFormatError(f"{self.scene_dir(scene_id) / 'scene_camera.json'}: no entry for im_id {im_id}")
@@ -498,45 +576,10 @@ class BopDataset:
         }
         return sorted(pairs)
 
-    def fingerprint(self, targets: Path | str | None = None) -> str:
-        """Short sha1 (12 hex) identifying the dataset cheaply, for cache keys.
-
-        Covers the bytes of camera.json, models_info.json and the targets file, and the
-        sorted names and sizes of the model files (models/ and models_eval/); absent
-        files count as absent. Image contents are not read.
-        """
-        h = hashlib.sha1()
-        for p in (self.camera_path(), self.models_info_path(), self.targets_path(targets)):
-            h.update(p.name.encode() + b"\0")
-            h.update(p.read_bytes() if p.is_file() else b"<absent>")
-            h.update(b"\0")
-        for d in sorted({self._model_dir(False, warn=False), self.root / "models_eval"}):
-            if d.is_dir():
-                for p in sorted(d.glob("*.ply")):
-                    h.update(f"{d.name}/{p.name}:{p.stat().st_size}\0".encode())
-        return h.hexdigest()[:12]
-
-    def content_fingerprints(self) -> tuple[str, str]:
-        """(dataset, models) short sha1s (12 hex) of file contents, for small datasets.
-
-        The dataset one covers the relative path and bytes of every file under the
-        root; the models one those of the model folder used for onboarding (meshes,
-        textures) and ``models_info.json``, which is all the model side reads. Reads
-        every byte: meant for datasets of a few images (``freeze estimate`` writes one)."""
-        def digest(files: Iterable[Path]) -> str:
-            h = hashlib.sha1()
-            for p in sorted(files):
-                h.update(p.relative_to(self.root).as_posix().encode() + b"\0")
-                with open(p, "rb") as f:
-                    while block := f.read(1 << 20):
-                        h.update(block)
-                h.update(b"\0")
-            return h.hexdigest()[:12]
-
-        everything = [p for p in self.root.rglob("*") if p.is_file()]
-        model_dir = self._model_dir(False, warn=False)
-        models = [p for p in everything if p.parent == model_dir or p == self.models_info_path()]
-        return digest(everything), digest(models)
+    def model_folder(self) -> Path:
+        """The folder the models are read from: ``models/`` (or the manifest's models
+        folder), else ``models_eval/``; never warns (planning asks for it)."""
+        return self._model_dir(False, warn=False)
 
 
 # ---------------------------------------------------------------------------- writers

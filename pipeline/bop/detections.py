@@ -23,9 +23,13 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from .errors import BopFormatError
-from .jsonio import load_json, save_bop_json
+from .jsonio import brief, load_json, save_bop_json
 
 # ---------------------------------------------------------------------------- RLE
+
+#: Largest mask side (px) an RLE may declare. No camera image comes near it; a larger
+#: size is a corrupt file, and decoding it would allocate H * W bytes.
+MAX_MASK_SIDE = 65535
 
 
 def rle_encode(mask: np.ndarray) -> dict:
@@ -103,11 +107,16 @@ def _rle_counts(rle: dict) -> tuple[list[int], int, int]:
         raise ValueError(f"RLE lacks {'size' if 'size' not in rle else 'counts'}")
     size = rle["size"]
     if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(_is_integral(v) and v >= 0 for v in size)):
-        raise ValueError(f"RLE size must be [H, W] non-negative ints, got {size!r}")
+        raise ValueError(f"RLE size must be [H, W] non-negative ints, got {brief(size)}")
     h, w = int(size[0]), int(size[1])
+    if max(h, w) > MAX_MASK_SIDE:
+        raise ValueError(f"RLE size {h}x{w} exceeds {MAX_MASK_SIDE} px a side (a corrupt size?)")
     raw = rle["counts"]
-    if isinstance(raw, bytes):
-        raw = raw.decode("ascii")
+    if isinstance(raw, bytes):  # pycocotools returns bytes; JSON never does
+        try:
+            raw = raw.decode("ascii")
+        except UnicodeDecodeError:
+            raise ValueError("RLE counts string is not ASCII") from None
     if isinstance(raw, str):
         counts = rle_counts_from_string(raw)
     elif isinstance(raw, (list, tuple)):
@@ -147,7 +156,13 @@ def _is_integral(v: Any) -> bool:
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+    """A finite int or float (not a bool); an int beyond the float range is not."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # JSON ints have any number of digits
+        return False
 
 
 # ---------------------------------------------------------------------------- detections
@@ -234,8 +249,11 @@ def _id_field(entry: dict, name: str, err: _ErrorMaker) -> int:
     values = []
     for key in present:
         if not _is_integral(entry[key]):
-            raise err(key, f"expected an integer, got {entry[key]!r}")
-        values.append(int(entry[key]))
+            raise err(key, f"expected an integer, got {brief(entry[key])}")
+        value = int(entry[key])
+        if not -(2 ** 63) <= value < 2 ** 63:  # ids end up in int64 columns
+            raise err(key, f"{value} does not fit in int64")
+        values.append(value)
     if len(values) == 2 and values[0] != values[1]:
         raise err(name, f"{values[0]} disagrees with '{alias}' = {values[1]} (both spellings given, with different values)")
     return values[0]
@@ -270,18 +288,18 @@ def _parse_detection(path: Path, index: int, entry: Any, source: str = "") -> De
     if "score" not in entry:
         raise err("score", "missing")
     if not _is_number(entry["score"]):
-        raise err("score", f"expected a finite number, got {entry['score']!r}")
+        raise err("score", f"expected a finite number, got {brief(entry['score'])}")
     if "bbox" not in entry:
         raise err("bbox", "missing")
     bbox = entry["bbox"]
     if not (isinstance(bbox, (list, tuple)) and len(bbox) == 4 and all(_is_number(v) for v in bbox)):
-        raise err("bbox", f"expected [x, y, w, h] numbers, got {bbox!r}")
+        raise err("bbox", f"expected [x, y, w, h] numbers, got {brief(bbox)}")
     segmentation = _segmentation_field(entry, err)
     t = entry.get("time", -1.0)
     if t is None:
         t = -1.0
     if not _is_number(t):
-        raise err("time", f"expected a number, got {t!r}")
+        raise err("time", f"expected a number, got {brief(t)}")
     return Detection(
         scene_id=ids["scene_id"],
         image_id=ids["image_id"],
@@ -307,7 +325,7 @@ def load_detections(path: Path | str, source: str = "") -> list[Detection]:
     path = Path(path)
     content = load_json(path)
     if isinstance(content, dict):
-        keys = ", ".join(repr(k) for k in list(content)[:5]) + (", ..." if len(content) > 5 else "")
+        keys = ", ".join(brief(k, 30) for k in list(content)[:5]) + (", ..." if len(content) > 5 else "")
         raise BopFormatError(
             f"{path}: expected a JSON list of detections at the top level, got an object (keys {keys}); "
             "a file mapping a key to the list is not accepted: save the list itself")

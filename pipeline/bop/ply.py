@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 
 from .errors import BopFormatError
+from .jsonio import brief
 
 _PLY_TYPES: dict[str, str] = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -27,6 +28,8 @@ _PLY_TYPES: dict[str, str] = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
+_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+               "f4": "float", "f8": "double"}
 _FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 # Property names used for texture coordinates by BOP (texture_u/v) and other exporters.
 _UV_NAMES = (("texture_u", "texture_v"), ("s", "t"), ("u", "v"), ("texture_s", "texture_t"))
@@ -178,92 +181,160 @@ def _parse_header(path: Path, raw: bytes) -> tuple[str | None, list[_Element], l
     comments: list[str] = []
     for lineno, line in enumerate(lines, start=2):
         tok = line.split()
+        where = f"{path}: header line {lineno}"
         if not tok:
             continue
         if tok[0] == "format":
             if len(tok) < 2 or tok[1] not in _FORMATS:
-                raise BopFormatError(f"{path}: header line {lineno}: unsupported format '{line.strip()}'")
+                raise BopFormatError(f"{where}: unsupported format {brief(line.strip())}")
             fmt, seen_format = _FORMATS[tok[1]], True
         elif tok[0] == "comment":
             comments.append(line.strip()[len("comment"):].strip())
         elif tok[0] == "obj_info":
             continue
         elif tok[0] == "element":
-            if len(tok) != 3 or not tok[2].isdigit():
-                raise BopFormatError(f"{path}: header line {lineno}: malformed element line '{line.strip()}'")
+            # isascii: str.isdigit() also accepts '²' and other digits int() refuses.
+            if len(tok) != 3 or not (tok[2].isascii() and tok[2].isdigit()):
+                raise BopFormatError(f"{where}: malformed element line {brief(line.strip())}")
+            if any(e.name == tok[1] for e in elements):
+                raise BopFormatError(f"{where}: element {brief(tok[1])} repeated")
             elements.append(_Element(tok[1], int(tok[2]), []))
         elif tok[0] == "property":
             if not elements:
-                raise BopFormatError(f"{path}: header line {lineno}: property before any element")
+                raise BopFormatError(f"{where}: property before any element")
             try:
                 if tok[1] == "list":
                     prop = _Property(tok[4], _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]])
                 else:
                     prop = _Property(tok[2], _PLY_TYPES[tok[1]])
             except (IndexError, KeyError):
-                raise BopFormatError(f"{path}: header line {lineno}: malformed property '{line.strip()}'") from None
+                raise BopFormatError(f"{where}: malformed property {brief(line.strip())}") from None
+            # A float list length could be NaN or 2.5: the PLY format wants an integer type.
+            if prop.is_list and np.dtype(prop.count_dtype).kind not in "iu":
+                raise BopFormatError(f"{where}: list count type must be an integer type, got {brief(tok[2])}")
+            # Records are read as numpy structured arrays, whose field names must be unique.
+            if any(q.name == prop.name for q in elements[-1].properties):
+                raise BopFormatError(f"{where}: property {brief(prop.name)} repeated in element {brief(elements[-1].name)}")
             elements[-1].properties.append(prop)
         else:
-            raise BopFormatError(f"{path}: header line {lineno}: unknown keyword '{tok[0]}'")
+            raise BopFormatError(f"{where}: unknown keyword {brief(tok[0])}")
     if not seen_format:
         raise BopFormatError(f"{path}: header has no 'format' line")
     return fmt, elements, comments, body_start
 
 
+def _truncated(path: Path, el: _Element) -> BopFormatError:
+    return BopFormatError(f"{path}: element '{el.name}': file truncated ({el.count} records expected)")
+
+
+def _binary_list_len(path: Path, buf: bytes, pos: int, el: _Element, p: _Property, order: str) -> int:
+    """Length of the list of property ``p`` whose count starts at byte ``pos``."""
+    if pos + np.dtype(p.count_dtype).itemsize > len(buf):
+        raise _truncated(path, el)
+    n = int(np.frombuffer(buf, order + p.count_dtype, 1, pos)[0])
+    if n < 0:  # a signed count type; numpy would read "-1" as "the rest of the buffer"
+        raise BopFormatError(f"{path}: element '{el.name}', property '{p.name}': negative list length {n}")
+    return n
+
+
 def _read_binary_element(path: Path, buf: bytes, offset: int, el: _Element, order: str) -> tuple[dict, int]:
     """Read one element from a binary body; returns ({prop: array}, new offset)."""
-    if el.count == 0:
+    if el.count == 0 or not el.properties:  # no records, or records of zero bytes
         return {p.name: np.zeros((0,), order + p.dtype) for p in el.properties}, offset
     # Fast path: assume every list has the length found in the first record (always
-    # true for triangle meshes), read with one structured dtype, then verify.
+    # true for triangle meshes), read with one structured dtype, then verify. A space
+    # cannot occur in a header token, so "<name> n" never clashes with a property.
     fields = []
     pos = offset
     for p in el.properties:
         if p.is_list:
-            if pos + np.dtype(p.count_dtype).itemsize > len(buf):
-                raise BopFormatError(f"{path}: element '{el.name}': file truncated")
-            n = int(np.frombuffer(buf, order + p.count_dtype, 1, pos)[0])
-            fields += [(p.name + "#n", order + p.count_dtype), (p.name, order + p.dtype, (n,))]
+            n = _binary_list_len(path, buf, pos, el, p, order)
+            fields += [(p.name + " n", order + p.count_dtype), (p.name, order + p.dtype, (n,))]
             pos += np.dtype(p.count_dtype).itemsize + n * np.dtype(p.dtype).itemsize
         else:
             fields.append((p.name, order + p.dtype))
             pos += np.dtype(p.dtype).itemsize
+        if pos > len(buf):  # checked before building a dtype from a corrupt, huge list length
+            raise _truncated(path, el)
     dtype = np.dtype(fields)
     if offset + dtype.itemsize * el.count <= len(buf):
         rec = np.frombuffer(buf, dtype, el.count, offset)
-        if all(np.all(rec[p.name + "#n"] == rec.dtype[p.name].shape[0]) for p in el.properties if p.is_list):
+        if all(np.all(rec[p.name + " n"] == rec.dtype[p.name].shape[0]) for p in el.properties if p.is_list):
             return {p.name: rec[p.name] for p in el.properties}, offset + dtype.itemsize * el.count
     if not any(p.is_list for p in el.properties):
-        raise BopFormatError(f"{path}: element '{el.name}': file truncated ({el.count} records expected)")
-    # Slow path: lists of varying length (polygons), read record by record.
+        raise _truncated(path, el)
+    # Slow path: lists of varying length (polygons), read record by record; every record
+    # takes at least one byte, so a huge corrupt count ends at the end of the buffer.
     out: dict[str, list] = {p.name: [] for p in el.properties}
     pos = offset
-    try:
-        for _ in range(el.count):
-            for p in el.properties:
-                if p.is_list:
-                    n = int(np.frombuffer(buf, order + p.count_dtype, 1, pos)[0])
-                    pos += np.dtype(p.count_dtype).itemsize
-                    out[p.name].append(np.frombuffer(buf, order + p.dtype, n, pos))
-                    pos += n * np.dtype(p.dtype).itemsize
-                else:
-                    out[p.name].append(np.frombuffer(buf, order + p.dtype, 1, pos)[0])
-                    pos += np.dtype(p.dtype).itemsize
-    except ValueError:
-        raise BopFormatError(f"{path}: element '{el.name}': file truncated") from None
+    for _ in range(el.count):
+        for p in el.properties:
+            if p.is_list:
+                n = _binary_list_len(path, buf, pos, el, p, order)
+                pos += np.dtype(p.count_dtype).itemsize
+                size = n
+            else:
+                size = 1
+            if pos + size * np.dtype(p.dtype).itemsize > len(buf):
+                raise _truncated(path, el)
+            values = np.frombuffer(buf, order + p.dtype, size, pos)
+            out[p.name].append(values if p.is_list else values[0])
+            pos += size * np.dtype(p.dtype).itemsize
     return {p.name: (out[p.name] if p.is_list else np.array(out[p.name])) for p in el.properties}, pos
+
+
+def _number_text(v: float) -> str:
+    """A float read from ascii as the file most likely spelled it (300, 2.5, 1e+39)."""
+    return str(int(v)) if v.is_integer() and abs(v) < 1e17 else repr(v)
+
+
+def _cast(path: Path, el: _Element, p: _Property, values: np.ndarray) -> np.ndarray:
+    """float64 values read from an ascii body as the property's declared type.
+
+    An integer property must hold integral values in the type's range, and a float
+    property finite values within its range (NaN and inf pass, for the caller to judge):
+    numpy's cast would wrap (300 -> 44 as uchar) or overflow (1e39 -> inf) silently.
+    """
+    target = np.dtype(p.dtype)
+    if target.kind in "iu":
+        info = np.iinfo(target)
+        ok = np.isfinite(values) & (values == np.round(values)) & (values >= info.min) & (values <= info.max)
+        cast = values.astype(target) if np.all(ok) else None
+    else:
+        # Not |v| <= max: float32's max prints as 3.4028235e38, just above it, and rounds
+        # back to it; only values that round to inf overflow.
+        with np.errstate(over="ignore"):
+            cast = values.astype(target)
+        ok = ~np.isfinite(values) | np.isfinite(cast)
+    if not np.all(ok):
+        bad = float(values[~ok].flat[0])
+        raise BopFormatError(f"{path}: element '{el.name}': value {_number_text(bad)} does not fit property "
+                             f"'{p.name}' ({_TYPE_NAMES[p.dtype]})")
+    return cast
+
+
+def _ascii_list_len(path: Path, el: _Element, p: _Property, token: str) -> int:
+    """Length of a list from its ascii token: a non-negative integer ("3" or "3.0")."""
+    try:
+        n = float(token)
+    except ValueError:
+        n = float("nan")
+    if not (np.isfinite(n) and n >= 0 and n.is_integer()):
+        raise BopFormatError(
+            f"{path}: element '{el.name}', property '{p.name}': list length {brief(token)} is not a non-negative integer")
+    return int(n)
 
 
 def _read_ascii_element(path: Path, tokens: list[str], start: int, el: _Element) -> tuple[dict, int]:
     """Read one element from the whitespace-split ascii body; returns ({prop: array}, next token)."""
-    if el.count == 0:
+    if el.count == 0 or not el.properties:  # no records, or records of no values
         return {p.name: np.zeros((0,), p.dtype) for p in el.properties}, start
 
     def number_array(toks: list[str]) -> np.ndarray:
         try:
             return np.asarray(toks, dtype=np.float64)
         except ValueError as e:
-            raise BopFormatError(f"{path}: element '{el.name}': non-numeric value ({e})") from None
+            raise BopFormatError(f"{path}: element '{el.name}': non-numeric value ({brief(str(e), 100)})") from None
 
     # Fast path: all records have the list lengths of the first record.
     widths = []
@@ -271,11 +342,8 @@ def _read_ascii_element(path: Path, tokens: list[str], start: int, el: _Element)
     for p in el.properties:
         if p.is_list:
             if pos >= len(tokens):
-                raise BopFormatError(f"{path}: element '{el.name}': file truncated")
-            try:
-                n = int(float(tokens[pos]))
-            except ValueError:
-                raise BopFormatError(f"{path}: element '{el.name}': list length '{tokens[pos]}' is not a number") from None
+                raise _truncated(path, el)
+            n = _ascii_list_len(path, el, p, tokens[pos])
             widths.append(1 + n)
             pos += 1 + n
         else:
@@ -291,31 +359,31 @@ def _read_ascii_element(path: Path, tokens: list[str], start: int, el: _Element)
             result = {}
             for i, p in enumerate(el.properties):
                 if p.is_list:
-                    result[p.name] = table[:, cols[i] + 1 : cols[i + 1]].astype(p.dtype)
+                    result[p.name] = _cast(path, el, p, table[:, cols[i] + 1 : cols[i + 1]])
                 else:
-                    result[p.name] = table[:, cols[i]].astype(p.dtype)
+                    result[p.name] = _cast(path, el, p, table[:, cols[i]])
             return result, end
     if not any(p.is_list for p in el.properties):
-        raise BopFormatError(f"{path}: element '{el.name}': file truncated ({el.count} records expected)")
+        raise _truncated(path, el)
+    # Slow path: record by record; each takes at least one token, so a huge corrupt
+    # count ends at the end of the body.
     out: dict[str, list] = {p.name: [] for p in el.properties}
     pos = start
-    try:
-        for _ in range(el.count):
-            for p in el.properties:
-                if p.is_list:
-                    n = int(float(tokens[pos]))
-                    out[p.name].append(number_array(tokens[pos + 1 : pos + 1 + n]).astype(p.dtype))
-                    if len(out[p.name][-1]) != n:
-                        raise IndexError
-                    pos += 1 + n
-                else:
-                    out[p.name].append(float(tokens[pos]))
-                    pos += 1
-    except IndexError:
-        raise BopFormatError(f"{path}: element '{el.name}': file truncated") from None
-    except ValueError as e:
-        raise BopFormatError(f"{path}: element '{el.name}': non-numeric value ({e})") from None
-    return {p.name: (out[p.name] if p.is_list else np.asarray(out[p.name]).astype(p.dtype)) for p in el.properties}, pos
+    for _ in range(el.count):
+        for p in el.properties:
+            if pos >= len(tokens):
+                raise _truncated(path, el)
+            if p.is_list:
+                n = _ascii_list_len(path, el, p, tokens[pos])
+                if pos + 1 + n > len(tokens):
+                    raise _truncated(path, el)
+                out[p.name].append(_cast(path, el, p, number_array(tokens[pos + 1 : pos + 1 + n])))
+                pos += 1 + n
+            else:
+                out[p.name].append(tokens[pos])
+                pos += 1
+    return {p.name: (out[p.name] if p.is_list else _cast(path, el, p, number_array(out[p.name])))
+            for p in el.properties}, pos
 
 
 def _triangulate(path: Path, faces: np.ndarray | list) -> np.ndarray:
@@ -323,12 +391,13 @@ def _triangulate(path: Path, faces: np.ndarray | list) -> np.ndarray:
     if isinstance(faces, np.ndarray):
         if faces.ndim == 2 and faces.shape[1] == 3:
             return faces.astype(np.int64)
+        if len(faces) == 0:
+            return np.zeros((0, 3), np.int64)
         if faces.ndim == 2 and faces.shape[1] > 3:
             faces = list(faces)
-        elif faces.size == 0:
-            return np.zeros((0, 3), np.int64)
         else:
-            raise BopFormatError(f"{path}: faces with fewer than 3 vertices")
+            raise BopFormatError(f"{path}: a face has {faces.shape[-1] if faces.ndim == 2 else 1} vertices; "
+                                 "at least 3 are needed")
     tris = []
     for poly in faces:
         if len(poly) < 3:
@@ -341,14 +410,20 @@ def _triangulate(path: Path, faces: np.ndarray | list) -> np.ndarray:
 def read_ply(path: Path | str) -> PlyData:
     """Read a PLY mesh (ascii or binary) into a ``PlyData``; see the module docstring.
 
-    Raises ``BopFormatError`` naming the file on a missing file, bad header, truncated
-    body, missing x/y/z, or out-of-range face indices.
+    Raises ``BopFormatError`` naming the file, on one line, on a missing file, bad
+    header, truncated body, a value that does not fit its declared type, missing
+    x/y/z, a non-finite vertex coordinate (or one beyond float32), non-integer or
+    out-of-range face indices.
     """
     path = Path(path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise BopFormatError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise BopFormatError(f"{path}: is a directory, not a file") from None
+    except OSError as e:
+        raise BopFormatError(f"{path}: cannot read the file: {e.strerror or e}") from None
     order, elements, comments, body = _parse_header(path, raw)
     data: dict[str, dict] = {}
     if order is None:
@@ -360,29 +435,58 @@ def read_ply(path: Path | str) -> PlyData:
         pos = body
         for el in elements:
             data[el.name], pos = _read_binary_element(path, raw, pos, el, order)
+    props = {el.name: {p.name: p for p in el.properties} for el in elements}
+
+    def column(name: str) -> np.ndarray | None:
+        """(V,) values of the scalar vertex property ``name``, None when absent."""
+        if name not in data["vertex"]:
+            return None
+        if props["vertex"][name].is_list:
+            raise BopFormatError(f"{path}: vertex property '{name}' is a list; a number is needed")
+        return data["vertex"][name]
 
     if "vertex" not in data:
         raise BopFormatError(f"{path}: no 'vertex' element")
-    vert = data["vertex"]
-    for name in ("x", "y", "z"):
-        if name not in vert:
+    xyz = [column(name) for name in ("x", "y", "z")]
+    for name, values in zip("xyz", xyz):
+        if values is None:
             raise BopFormatError(f"{path}: vertex element has no property '{name}'")
-    vertices = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float32)
+    # Checked here, naming the vertex: a NaN would otherwise surface much later as a
+    # NaN diameter or an empty render.
+    with np.errstate(invalid="ignore"):  # a signalling NaN from a binary file warns when cast
+        v64 = np.stack(xyz, axis=1).astype(np.float64)
+    finite = np.isfinite(v64).all(axis=1)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise BopFormatError(f"{path}: vertex {i} has a non-finite coordinate ({', '.join(map(repr, v64[i].tolist()))})")
+    with np.errstate(over="ignore"):  # doubles beyond float32 become inf: reported next
+        vertices = v64.astype(np.float32)
+    beyond = ~np.isfinite(vertices).all(axis=1)
+    if beyond.any():
+        i = int(np.flatnonzero(beyond)[0])
+        raise BopFormatError(f"{path}: vertex {i} has a coordinate beyond the float32 range "
+                             f"({', '.join(map(repr, v64[i].tolist()))})")
     normals = None
-    if all(n in vert for n in ("nx", "ny", "nz")):
-        normals = np.stack([vert["nx"], vert["ny"], vert["nz"]], axis=1).astype(np.float32)
+    nrm = [column(name) for name in ("nx", "ny", "nz")]
+    if all(c is not None for c in nrm):
+        with np.errstate(over="ignore", invalid="ignore"):  # normals are not checked: inf/NaN stay
+            normals = np.stack(nrm, axis=1).astype(np.float32)
     colors = None
     for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if all(n in vert for n in names):
-            c = np.stack([vert[n] for n in names], axis=1)
+        rgb = [column(name) for name in names]
+        if all(c is not None for c in rgb):
+            c = np.stack(rgb, axis=1)
             if c.dtype.kind == "f":  # some exporters store colours in [0, 1]
-                c = np.clip(np.round(c * 255.0), 0, 255)
-            colors = c.astype(np.uint8)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    c = np.round(np.nan_to_num(c.astype(np.float64) * 255.0))
+            colors = np.clip(c, 0, 255).astype(np.uint8)  # 16-bit or signed types: clip, never wrap
             break
     uv = None
     for u, v in _UV_NAMES:
-        if u in vert and v in vert:
-            uv = np.stack([vert[u], vert[v]], axis=1).astype(np.float32)
+        cu, cv = column(u), column(v)
+        if cu is not None and cv is not None:
+            with np.errstate(over="ignore", invalid="ignore"):
+                uv = np.stack([cu, cv], axis=1).astype(np.float32)
             break
 
     faces = np.zeros((0, 3), np.int64)
@@ -391,6 +495,11 @@ def read_ply(path: Path | str) -> PlyData:
         key = next((n for n in _FACE_LIST_NAMES if n in face_el), None)
         if key is None:
             raise BopFormatError(f"{path}: face element has no 'vertex_indices' list")
+        prop = props["face"][key]
+        if not prop.is_list:
+            raise BopFormatError(f"{path}: face property '{key}' must be a list of vertex indices")
+        if np.dtype(prop.dtype).kind not in "iu":  # a float index would be truncated, NaN cast to garbage
+            raise BopFormatError(f"{path}: face indices must be integers, got type '{_TYPE_NAMES[prop.dtype]}'")
         faces = _triangulate(path, face_el[key])
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise BopFormatError(
@@ -413,11 +522,14 @@ def load_mesh(path: Path | str) -> trimesh.Trimesh:
 
     Vertex order is kept (``process=False``), so indices match the file. Texture UVs
     with their image become ``TextureVisuals``; vertex colours become ``ColorVisuals``;
-    meshes with neither get a uniform grey. A named but missing texture image raises
-    ``BopFormatError``.
+    meshes with neither get a uniform grey. ``BopFormatError`` (naming the file) when
+    ``read_ply`` fails, the PLY has no faces (a point cloud), or a texture image named
+    in the header is missing or cannot be decoded.
     """
     path = Path(path)
     ply = read_ply(path)
+    if len(ply.faces) == 0:  # a point cloud: nothing to render or to sample a surface on
+        raise BopFormatError(f"{path}: has no faces; a surface mesh is needed")
     mesh = trimesh.Trimesh(
         vertices=ply.vertices.astype(np.float64),
         faces=ply.faces,
@@ -430,8 +542,12 @@ def load_mesh(path: Path | str) -> trimesh.Trimesh:
         tex_path = path.parent / ply.texture_file
         if not tex_path.is_file():
             raise BopFormatError(f"{path}: texture file '{ply.texture_file}' named in the header not found at {tex_path}")
-        with Image.open(tex_path) as im:
-            image = im.convert("RGB")
+        try:
+            with Image.open(tex_path) as im:
+                image = im.convert("RGB")
+        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:  # PIL's errors on bad images
+            reason = " ".join(str(e).split())[:120]
+            raise BopFormatError(f"{path}: texture file '{ply.texture_file}' cannot be read ({reason})") from None
         material = trimesh.visual.material.SimpleMaterial(image=image)
         mesh.visual = trimesh.visual.TextureVisuals(uv=ply.texture_uv.astype(np.float64), material=material)
     elif ply.colors is not None:

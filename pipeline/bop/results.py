@@ -18,10 +18,47 @@ import pandas as pd
 from .errors import BopFormatError
 from pipeline.store import atomic_write_text
 
-from .jsonio import load_json
+from .jsonio import brief, load_json, read_text
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 COLUMNS = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
+# Ids are stored as int64 columns; a larger value is a corrupt file, not an id.
+_INT64_MIN, _INT64_MAX = -(2 ** 63), 2 ** 63 - 1
+
+
+def _int64(value: int) -> int:
+    """``value`` if it fits the int64 id columns, else ValueError."""
+    if not _INT64_MIN <= value <= _INT64_MAX:
+        raise ValueError(f"{value} does not fit in int64")
+    return value
+
+
+def _parse_int(raw: str) -> int:
+    """An int64 id from a CSV field."""
+    try:
+        value = int(raw)
+    except ValueError:  # not an integer, or beyond Python's 4300-digit limit
+        raise ValueError("expected an integer") from None
+    return _int64(value)
+
+
+def _json_finite(value: Any) -> float | None:
+    """``value`` as a float if it is a finite JSON number (not a bool), else None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        f = float(value)
+    except OverflowError:  # an int beyond the float range (JSON allows any digits)
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _parse_finite(raw: str) -> float:
+    """A finite float from a CSV field (score, time: NaN would break ranking and timing)."""
+    value = float(raw)
+    if not math.isfinite(value):
+        raise ValueError("non-finite value")
+    return value
 
 
 def _rows(rows: pd.DataFrame | Iterable[Mapping[str, Any]]) -> Iterable[Mapping[str, Any]]:
@@ -53,8 +90,8 @@ def write_results_csv(path: Path | str, rows: pd.DataFrame | Iterable[Mapping[st
             raise ValueError(f"write_results_csv({path}): row {i}: {e!r}") from None
         time = r.get("time", -1.0) if hasattr(r, "get") else -1.0
         time = -1.0 if time is None or (isinstance(time, float) and math.isnan(time)) else float(time)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and math.isfinite(score)):
-            raise ValueError(f"write_results_csv({path}): row {i}: non-finite score, R or t")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and math.isfinite(score) and math.isfinite(time)):
+            raise ValueError(f"write_results_csv({path}): row {i}: non-finite score, R, t or time")
         key = (scene_id, im_id)
         if times.setdefault(key, time) != time:
             raise ValueError(
@@ -72,20 +109,18 @@ def read_results_csv(path: Path | str) -> pd.DataFrame:
 
     Columns: scene_id, im_id, obj_id (int64), score (float64), R (object: (3, 3)
     float64 arrays), t (object: (3,) float64 mm), time (float64 s; -1 when the file has
-    no time column). A malformed line raises ``BopFormatError`` naming the line number
-    and the field.
+    no time column). The file must be UTF-8 text (a leading BOM is accepted); ids must
+    fit in int64 and score, R, t and time be finite. Anything else raises
+    ``BopFormatError`` naming the file, the line number and the field, on one line.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise BopFormatError(f"{path}: file not found") from None
+    text = read_text(path)  # UTF-8 (a BOM allowed), else one line saying it is not UTF-8 text
     lines = text.splitlines()
     if not lines:
         raise BopFormatError(f"{path}: empty file (expected header '{HEADER}')")
     header = [h.strip() for h in lines[0].split(",")]
     if header not in (COLUMNS, COLUMNS[:-1]):
-        raise BopFormatError(f"{path}: line 1: header must be '{HEADER}' (time optional), got '{lines[0]}'")
+        raise BopFormatError(f"{path}: line 1: header must be '{HEADER}' (time optional), got {brief(lines[0])}")
     has_time = len(header) == 7
     records: dict[str, list] = {c: [] for c in COLUMNS}
     for lineno, line in enumerate(lines[1:], start=2):
@@ -107,16 +142,16 @@ def read_results_csv(path: Path | str) -> pd.DataFrame:
                     if not np.all(np.isfinite(value)):
                         raise ValueError("non-finite value")
             except ValueError as e:
-                raise BopFormatError(f"{path}: line {lineno}, field '{name}': {e} (got '{raw}')") from None
+                raise BopFormatError(f"{path}: line {lineno}, field '{name}': {e} (got {brief(raw)})") from None
             return value
 
-        records["scene_id"].append(field("scene_id", int))
-        records["im_id"].append(field("im_id", int))
-        records["obj_id"].append(field("obj_id", int))
-        records["score"].append(field("score", float))
+        records["scene_id"].append(field("scene_id", _parse_int))
+        records["im_id"].append(field("im_id", _parse_int))
+        records["obj_id"].append(field("obj_id", _parse_int))
+        records["score"].append(field("score", _parse_finite))
         records["R"].append(field("R", None, 9).reshape(3, 3))
         records["t"].append(field("t", None, 3))
-        records["time"].append(field("time", float) if has_time else -1.0)
+        records["time"].append(field("time", _parse_finite) if has_time else -1.0)
     df = pd.DataFrame(
         {
             "scene_id": pd.Series(records["scene_id"], dtype="int64"),
@@ -135,35 +170,48 @@ def read_estimates_json(path: Path | str) -> pd.DataFrame:
     """Estimates stored as a JSON list of {scene_id, im_id, obj_id, score, cam_R_m2c, cam_t_m2c[, time]}.
 
     Same columns as ``read_results_csv`` (used by the estimate files shipped with the
-    shared test data). Errors name the entry index and the field.
+    shared test data). cam_R_m2c is 9 numbers (row-major), cam_t_m2c 3 (mm); ids are
+    integers (integral floats allowed) fitting in int64; score and time finite numbers
+    (time absent or null: -1). Errors name the file, the entry index and the field.
     """
     path = Path(path)
     content = load_json(path)
     if not isinstance(content, list):
-        raise BopFormatError(f"{path}: expected a JSON list of estimates")
+        raise BopFormatError(f"{path}: expected a JSON list of estimates, got {type(content).__name__}")
     rows = []
     for i, d in enumerate(content):
         if not isinstance(d, dict):
-            raise BopFormatError(f"{path}: entry {i}: expected an object")
+            raise BopFormatError(f"{path}: entry {i}: expected an object, got {type(d).__name__}")
+
+        def bad(name: str, msg: str) -> BopFormatError:
+            return BopFormatError(f"{path}: entry {i}, field '{name}': {msg}")
+
         for k in ("scene_id", "im_id", "obj_id", "score", "cam_R_m2c", "cam_t_m2c"):
             if k not in d:
-                raise BopFormatError(f"{path}: entry {i}, field '{k}' missing")
-        try:
-            R = np.asarray(d["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
-            t = np.asarray(d["cam_t_m2c"], dtype=np.float64).reshape(3)
-        except (ValueError, TypeError) as e:
-            raise BopFormatError(f"{path}: entry {i}, field 'cam_R_m2c'/'cam_t_m2c': {e}") from None
-        rows.append(
-            {
-                "scene_id": int(d["scene_id"]),
-                "im_id": int(d["im_id"]),
-                "obj_id": int(d["obj_id"]),
-                "score": float(d["score"]),
-                "R": R,
-                "t": t,
-                "time": float(d.get("time", -1.0)),
-            }
-        )
+                raise bad(k, "missing")
+        row: dict[str, Any] = {}
+        for k in ("scene_id", "im_id", "obj_id"):
+            v = d[k]
+            # JSON writers may emit integral floats (3.0); bools are not ids.
+            if isinstance(v, bool) or not (isinstance(v, int) or (isinstance(v, float) and v.is_integer())):
+                raise bad(k, f"expected an integer, got {brief(v)}")
+            try:
+                row[k] = _int64(int(v))
+            except ValueError as e:
+                raise bad(k, str(e)) from None
+        time = d.get("time", -1.0)
+        for k, v in (("score", d["score"]), ("time", -1.0 if time is None else time)):
+            number = _json_finite(v)
+            if number is None:
+                raise bad(k, f"expected a finite number, got {brief(v)}")
+            row[k] = number
+        for k, out, n in (("cam_R_m2c", "R", 9), ("cam_t_m2c", "t", 3)):
+            v = d[k]
+            values = [_json_finite(x) for x in v] if isinstance(v, list) else []
+            if len(values) != n or None in values:
+                raise bad(k, f"expected {n} finite numbers, got {brief(v)}")
+            row[out] = np.array(values, dtype=np.float64).reshape((3, 3) if n == 9 else (3,))
+        rows.append(row)
     df = pd.DataFrame(rows, columns=COLUMNS)
     return df.astype({"scene_id": "int64", "im_id": "int64", "obj_id": "int64", "score": "float64", "time": "float64"})
 

@@ -125,14 +125,17 @@ def load_depth(path: Path | str, depth_scale: float) -> np.ndarray:
     """(H, W) float32 depth in mm = raw value * ``depth_scale``, 0 where invalid.
 
     The file is a single-channel 16-bit PNG (BOP); float images (e.g. TIFF) are read
-    as they are and scaled the same way."""
+    as they are and scaled the same way: the BOP reader's rule,
+    :func:`pipeline.bop.dataset.depth_format_problem`."""
     import cv2
 
-    raw = _imread(Path(path), "depth", cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
-    if raw.ndim != 2:
-        raise EstimateError(f"{path}: depth image has {raw.shape[2]} channels; expected a single-channel 16-bit PNG")
-    if raw.dtype == np.uint8:
-        raise EstimateError(f"{path}: depth image is 8-bit; expected a 16-bit PNG (depth_mm = value * depth_scale)")
+    from pipeline.bop.dataset import depth_format_problem
+
+    raw = _imread(Path(path), "depth", cv2.IMREAD_UNCHANGED)
+    problem = depth_format_problem(raw)
+    if problem:
+        raise EstimateError(f"{path}: {problem} (depth_mm = value * depth_scale)")
+    raw = raw.reshape(raw.shape[:2])
     depth = raw.astype(np.float64) * float(depth_scale)
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
     if not (depth > 0).any():

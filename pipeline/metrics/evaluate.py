@@ -13,6 +13,10 @@ and ``eval_calc_scores.py``):
 
 Datasets without depth get no VSD: AR_VSD and AR are then None, never an average
 over the remaining metrics.
+
+Estimates whose R is not a rotation (see :data:`ROTATION_TOLERANCE`) are refused before
+anything is scored (:func:`check_rotations`): the toolkit would score them, but MSSD,
+MSPD and VSD of a scaled, sheared or reflected model mean nothing.
 """
 
 from __future__ import annotations
@@ -30,8 +34,8 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from pipeline.bop import BopDataset, Target, read_results_csv
-from pipeline.store import atomic_path, atomic_write_text
+from pipeline.bop import BopDataset, BopFormatError, Target, read_results_csv
+from pipeline.store import atomic_path
 
 from .calc_errors import ErrorCalculator, ErrorParams, ImageJob, eval_models_info, init_worker, run_jobs
 from .matching import greedy_match, valid_gt_mask
@@ -47,6 +51,12 @@ MSPD_THRESHOLDS: np.ndarray = np.arange(5, 51, 5).astype(np.float64)  # px at 64
 
 #: VSD misalignment tolerance delta (mm) per BOP dataset; 15 mm for any other.
 VSD_DELTAS = {"itodd": 5.0}
+
+#: An estimate's R (3, 3) is a rotation when max|R^T R - I| <= ROTATION_TOLERANCE and
+#: |det R - 1| <= ROTATION_TOLERANCE (dimensionless). Loose enough for R written with
+#: 6 significant digits (deviation about 1e-6) or re-orthonormalised in float32; tight
+#: enough to refuse a scale off by 0.1%, any shear, any reflection and an all-zero R.
+ROTATION_TOLERANCE: float = 1e-3
 
 
 def bop_vsd_delta(dataset_name: str) -> float:
@@ -116,10 +126,54 @@ def _targets_list(dataset: BopDataset, targets: Sequence[Target] | Path | str | 
     return list(targets)
 
 
-def _check_results(results: pd.DataFrame) -> pd.DataFrame:
+class NotARotationError(BopFormatError):
+    """Estimates of a results file whose R is not a rotation (:func:`check_rotations`)."""
+
+
+def rotation_deviations(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each of the (N, 3, 3) matrices ``R`` is from a rotation: max|R^T R - I|
+    (N,) and |det R - 1| (N,), both dimensionless (0 for an exact rotation; 1 and 1 for
+    an all-zero R; a reflection has det -1, so 2)."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    ortho = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    det = np.abs(np.linalg.det(R) - 1.0) if len(R) else np.zeros(0)
+    return ortho, det
+
+
+def check_rotations(results: pd.DataFrame, source: str | Path = "results",
+                    tol: float = ROTATION_TOLERANCE) -> None:
+    """Refuse estimates whose R is not a rotation; the one check every scoring path runs.
+
+    results: as ``read_results_csv`` returns (R: (3, 3) arrays, or 9 values, each finite).
+    source: what the message names first (the results file).
+    Raises :class:`NotARotationError` (a ``BopFormatError``) with one line naming
+    ``source``, how many rows are bad, and the first bad row (its 1-based position among
+    the estimates, scene_id, im_id, obj_id) with its two deviations, when
+    max|R^T R - I| > ``tol`` or |det R - 1| > ``tol`` for any row.
+    """
+    if len(results) == 0:
+        return
+    R = np.stack([np.asarray(v, dtype=np.float64).reshape(3, 3) for v in results["R"]])
+    ortho, det = rotation_deviations(R)
+    # NaN deviations (a non-finite R that slipped through) count as bad, hence "not <=".
+    bad = np.flatnonzero(~((ortho <= tol) & (det <= tol)))
+    if not len(bad):
+        return
+    i = int(bad[0])
+    row = results.iloc[i]
+    raise NotARotationError(
+        f"{source}: {len(bad)} of {len(results)} estimates have an R that is not a rotation "
+        f"(max|R^T R - I| or |det R - 1| above {tol:g}); first: estimate {i + 1} "
+        f"(scene_id {int(row['scene_id'])}, im_id {int(row['im_id'])}, obj_id {int(row['obj_id'])}) "
+        f"with max|R^T R - I| = {ortho[i]:.3g}, |det R - 1| = {det[i]:.3g}")
+
+
+def _check_results(results: pd.DataFrame, source: str | Path = "results") -> pd.DataFrame:
+    """``results`` with its types checked and normalised (time -1 when absent); raises
+    ValueError naming ``source``, the row and the field, or :class:`NotARotationError`."""
     missing = [c for c in ("scene_id", "im_id", "obj_id", "score", "R", "t") if c not in results.columns]
     if missing:
-        raise ValueError(f"results: missing column(s) {missing}; expected scene_id, im_id, obj_id, score, R, t, time")
+        raise ValueError(f"{source}: missing column(s) {missing}; expected scene_id, im_id, obj_id, score, R, t, time")
     df = results.reset_index(drop=True).copy()
     if "time" not in df.columns:
         df["time"] = -1.0
@@ -131,9 +185,10 @@ def _check_results(results: pd.DataFrame) -> pd.DataFrame:
         for i, v in enumerate(df[name]):
             a = np.asarray(v, dtype=np.float64)
             if a.size != n or not np.all(np.isfinite(a)):
-                raise ValueError(f"results: row {i}, field '{name}': expected {n} finite values, got {v!r}")
+                raise ValueError(f"{source}: row {i}, field '{name}': expected {n} finite values, got {v!r}")
     if not np.all(np.isfinite(df["score"])):
-        raise ValueError(f"results: row {int(np.flatnonzero(~np.isfinite(df['score']))[0])}, field 'score': not finite")
+        raise ValueError(f"{source}: row {int(np.flatnonzero(~np.isfinite(df['score']))[0])}, field 'score': not finite")
+    check_rotations(df, source)
     return df
 
 
@@ -167,6 +222,8 @@ def unscored_summary(results_csv: Path, targets: Sequence[Target], why: str) -> 
     ground truth is missing (``why``): counts, the BOP time per image, and the file to
     submit to the BOP evaluation server."""
     df = read_results_csv(results_csv)
+    # Not scored here, but this is the file to submit: refuse it as scoring would.
+    check_rotations(df, results_csv)
     return {
         "status": "no_ground_truth",
         "AR": None, "AR_VSD": None, "AR_MSSD": None, "AR_MSPD": None,
@@ -454,6 +511,7 @@ def evaluate(
     progress: bool = True,
     visib_gt_min: float = -1.0,
     max_sym_disc_step: float = DEFAULT_MAX_SYM_DISC_STEP,
+    source: str | Path = "results",
 ) -> Scores:
     """Score pose estimates with the BOP19 metrics.
 
@@ -465,9 +523,13 @@ def evaluate(
     n_workers: processes for the error computation (spawned; each renders on its own).
     visib_gt_min: which GT instances are valid targets (see ``matching.valid_gt_mask``;
       the default -1 is the toolkit's BOP19 rule).
+    source: what error messages about ``results`` name first (the results file).
+
+    Raises ValueError on a malformed row and :class:`NotARotationError` when an R is not
+    a rotation within :data:`ROTATION_TOLERANCE` (:func:`check_rotations`).
     """
     t_start = _time.perf_counter()
-    df = _check_results(results)
+    df = _check_results(results, source)
     target_list = _targets_list(dataset, targets)
     inst_counts = {(t.scene_id, t.im_id, t.obj_id): t.inst_count for t in target_list}
     unknown = sorted({t.obj_id for t in target_list} - set(eval_models_info(dataset)))
@@ -560,8 +622,12 @@ def _timing_summary(parts: dict[str, float], prepare: float, match: float, error
 
 
 def _atomic_parquet(df: pd.DataFrame, path: Path) -> None:
+    """``df`` written to the Parquet file ``path`` atomically, mode ``0o666 & ~umask``."""
+    from pipeline.published_files import publishable
+
     with atomic_path(path) as tmp:
         df.to_parquet(tmp, index=False)
+        publishable(tmp)
 
 
 def _resolve_targets(dataset_root: Path, targets_file: Path | str | None) -> Path | None:
@@ -591,8 +657,14 @@ def score_results_file(
     not found from the working directory is looked up in ``dataset_root``.
     vsd_delta: default the BOP value for the dataset (folder) name.
     out_dir: when given, ``errors.parquet`` and ``scores.json`` are written there,
-    each atomically.
+    each atomically, with the mode the umask gives a new file (0644 under umask 022).
+
+    Raises ``BopFormatError`` naming the file: a malformed line, or
+    :class:`NotARotationError` when an estimate's R is not a rotation
+    (:data:`ROTATION_TOLERANCE`); nothing is written then.
     """
+    from pipeline.published_files import write_text_published
+
     dataset_root = Path(dataset_root)
     t0 = _time.perf_counter()
     dataset = BopDataset(dataset_root, split, split_type)
@@ -606,6 +678,7 @@ def score_results_file(
         vsd_delta=delta,
         n_workers=n_workers,
         progress=progress,
+        source=results_csv,
     )
     scores.summary["results_file"] = str(results_csv)
     scores.summary["dataset"] = str(dataset_root)
@@ -618,7 +691,7 @@ def score_results_file(
         _atomic_parquet(scores.errors, out / "errors.parquet")
         # The time to write scores.json itself (milliseconds) cannot be in it.
         timing["write"] = round(_time.perf_counter() - t0, 3)
-        atomic_write_text(out / "scores.json", json.dumps(scores.to_json(), indent=1) + "\n")
+        write_text_published(out / "scores.json", json.dumps(scores.to_json(), indent=1) + "\n")
     return scores
 
 
@@ -631,10 +704,13 @@ def load_scores(out_dir: Path | str) -> tuple[dict[str, Any], pd.DataFrame]:
 __all__ = [
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
+    "ROTATION_TOLERANCE",
     "VISIB_BIN_EDGES",
     "VSD_THETAS",
+    "NotARotationError",
     "Scores",
     "bop_vsd_delta",
+    "check_rotations",
     "evaluate",
     "load_scores",
     "score_results_file",

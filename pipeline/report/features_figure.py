@@ -14,6 +14,9 @@ the right, y down, as in the image), the model placed by the pose the register s
 found, nearest points drawn last. The last panel draws the two clouds side by side with
 lines between scene points and their nearest model point in fused-feature space (the
 matches RANSAC samples from) that are inliers under the registered pose.
+
+Points or features with NaN or inf are not drawn (features: grey, outside the PCA), and
+a panel whose cloud has no finite point says "no data"; an empty cloud is not an error.
 """
 
 from __future__ import annotations
@@ -73,17 +76,25 @@ def pca_colours(model: np.ndarray, scene: np.ndarray, q: tuple[float, float] = (
     the model features' total variance the (up to) 3 components explain. The PCA is
     fitted on the model only; each component is mapped to [0, 1] between its ``q``
     percentiles over the model (clipped outside); a component without spread (or missing,
-    when D < 3) is a constant 0.5.
+    when D < 3) is a constant 0.5. Rows holding NaN or inf are left out of the fit and
+    coloured 0.5 (grey); with no finite model row every colour is 0.5 and the explained
+    fraction 0.
     """
     from pipeline.registration.fusion import fit_pca
 
     model = np.asarray(model, np.float64)
+    if model.ndim != 2 or model.shape[1] == 0:
+        raise ValueError(f"pca_colours: expected (N, D) model features with D > 0, got shape {model.shape}")
     scene = np.asarray(scene, np.float64).reshape(-1, model.shape[1])
-    if model.ndim != 2 or model.shape[1] == 0 or len(model) == 0:
-        raise ValueError(f"pca_colours: expected non-empty (N, D) model features with D > 0, got shape {model.shape}")
-    basis = fit_pca(model, n_components=3, min_variance=0.0)
+    ok_m, ok_s = np.isfinite(model).all(axis=1), np.isfinite(scene).all(axis=1)
+    cm, cs = np.full((len(model), 3), 0.5), np.full((len(scene), 3), 0.5)
+    if not ok_m.any():
+        return cm, cs, 0.0
+    fit = model[ok_m]
+    basis = fit_pca(fit, n_components=3, min_variance=0.0)
     mean, comps = basis.mean.astype(np.float64), basis.components.astype(np.float64)
-    pm, ps = _project(model, mean, comps), _project(scene, mean, comps)
+    # Row by row projections (see _project), so leaving rows out changes no other row.
+    pm, ps = _project(fit, mean, comps), _project(scene[ok_s], mean, comps)
     lo, hi = np.percentile(pm, q, axis=0)
     span = hi - lo
     flat = span <= 1e-9 * max(1.0, float(np.abs(pm).max(initial=0.0)))
@@ -94,9 +105,10 @@ def pca_colours(model: np.ndarray, scene: np.ndarray, q: tuple[float, float] = (
         out[:, : p.shape[1]] = np.where(flat, 0.5, np.clip((p - lo) / span, 0.0, 1.0))
         return out
 
-    total = float(model.var(axis=0, ddof=1).sum()) if len(model) > 1 else 0.0
+    cm[ok_m], cs[ok_s] = rgb(pm), rgb(ps)
+    total = float(fit.var(axis=0, ddof=1).sum()) if len(fit) > 1 else 0.0
     explained = float(basis.explained_variance.sum()) / total if total > 0 else 0.0
-    return rgb(pm), rgb(ps), min(1.0, explained)
+    return cm, cs, min(1.0, explained)
 
 
 def fused_features(model_geo: np.ndarray, model_vis: np.ndarray, scene_geo: np.ndarray, scene_vis: np.ndarray,
@@ -114,13 +126,17 @@ def inlier_matches(case: FeatureCase) -> tuple[np.ndarray, np.ndarray]:
     """For every scene point, its nearest model point in fused-feature space (M,) and
     whether that match is an inlier under the registered pose (M,) bool: the model point
     moved by (R, t) lies within ``inlier_threshold`` of the scene point. Their count is
-    what the register stage stores as ``n_inliers``."""
+    what the register stage stores as ``n_inliers``. Without model points every match
+    is model point 0 and none is an inlier."""
     from pipeline.registration.ransac import feature_neighbours
 
     mf, sf = case.parts["fused"]
+    if len(mf) == 0 or len(sf) == 0:
+        return np.zeros(len(sf), np.int64), np.zeros(len(sf), bool)
     nn = feature_neighbours(sf, mf, k=1)[:, 0]
-    moved = case.model_points[nn] @ np.asarray(case.R, float).T + np.asarray(case.t, float)
-    return nn, np.linalg.norm(moved - case.scene_points, axis=1) < case.inlier_threshold
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points: NaN distance, not an inlier
+        moved = case.model_points[nn] @ np.asarray(case.R, float).T + np.asarray(case.t, float)
+        return nn, np.linalg.norm(moved - case.scene_points, axis=1) < case.inlier_threshold
 
 
 # ------------------------------------------------------------------------- loading
@@ -196,7 +212,11 @@ DPI = 90
 
 def _scatter(ax, pts_cam: np.ndarray, colours: np.ndarray | None, centre: np.ndarray, half: float, size: float,
              alpha: float = 1.0) -> None:
-    """Camera-frame points drawn orthographically (x right, y down), far ones first."""
+    """Camera-frame points (P, 3) mm drawn orthographically (x right, y down), far ones
+    first; points with a NaN or inf coordinate are not drawn."""
+    keep = np.isfinite(pts_cam).all(axis=1)
+    if not keep.all():
+        pts_cam, colours = pts_cam[keep], (None if colours is None else colours[keep])
     order = np.argsort(-pts_cam[:, 2])
     c = "0.6" if colours is None else colours[order]
     edges = "none"
@@ -212,31 +232,56 @@ def _scatter(ax, pts_cam: np.ndarray, colours: np.ndarray | None, centre: np.nda
     ax.set_yticks([])
 
 
+def _centre(pts: np.ndarray) -> np.ndarray:
+    """(2,) mean x, y (mm) of the finite rows of ``pts`` (P, 3); NaN when there is none."""
+    ok = np.isfinite(pts).all(axis=1)
+    return pts[ok, :2].mean(axis=0) if ok.any() else np.full(2, np.nan)
+
+
+def _frame_size(case: FeatureCase, *clouds: np.ndarray) -> float:
+    """The object's diameter (mm), or when it is not a positive finite number, the
+    largest x/y extent of the clouds' finite points (1 mm when they have none)."""
+    if np.isfinite(case.diameter) and case.diameter > 0:
+        return float(case.diameter)
+    pts = np.concatenate([c[np.isfinite(c).all(axis=1), :2] for c in clouds])
+    return float(max(1.0, np.ptp(pts, axis=0).max())) if len(pts) else 1.0
+
+
 def draw_features_figure(case: FeatureCase, out: Path, max_lines: int = 50, seed: int = 0) -> Path:
     """Write the figure of ``case`` to the PNG ``out`` (FIGSIZE x DPI pixels): rows
-    geometric / visual / fused (model left, scene right), then the inlier matches."""
+    geometric / visual / fused (model left, scene right), then the inlier matches.
+    Points with NaN or inf are not drawn; a panel with no point left says "no data"."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    R = np.asarray(case.R, float)
-    model_cam = case.model_points @ R.T + np.asarray(case.t, float)
-    scene_cam = case.scene_points
+    from pipeline.report.plots import NO_DATA, no_data, save_figure
+
+    R = np.asarray(case.R, float).reshape(3, 3)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf x 0 in a pose or point: NaN, left out below
+        model_cam = np.asarray(case.model_points, float).reshape(-1, 3) @ R.T + np.asarray(case.t, float).reshape(3)
+    scene_cam = np.asarray(case.scene_points, float).reshape(-1, 3)
+    ok_m, ok_s = np.isfinite(model_cam).all(axis=1), np.isfinite(scene_cam).all(axis=1)
     if case.model_normals is not None and len(case.model_normals) == len(model_cam):
         # the side of the surface the camera sees: normal against the viewing ray
         front = np.einsum("nd,nd->n", np.asarray(case.model_normals, float) @ R.T, model_cam) < 0
     else:
         front = np.ones(len(model_cam), bool)
+    front &= ok_m
     view = f"{int(front.sum())} of {len(front)} points, those facing the camera" if not front.all() else f"{len(front)} points"
-    c_model, c_scene = model_cam[:, :2].mean(axis=0), scene_cam[:, :2].mean(axis=0)
+    diameter = _frame_size(case, model_cam, scene_cam)
+    c_model, c_scene = _centre(model_cam), _centre(scene_cam)
+    if not np.isfinite(c_model).all() or not np.isfinite(c_scene).all():
+        # one cloud (or both) without a finite point: frame the other one (or the origin)
+        c_model = c_scene = c_model if np.isfinite(c_model).all() else c_scene if np.isfinite(c_scene).all() else np.zeros(2)
     dist = float(np.linalg.norm(c_model - c_scene))
-    if dist < case.diameter:
+    if dist < diameter:
         # one frame for both: where the model's surface falls on the scene's shows the pose
         centre_m = centre_s = (c_model + c_scene) / 2
-        half = 0.6 * case.diameter + dist / 2
+        half = 0.6 * diameter + dist / 2
     else:  # a pose far off: centre each cloud on its own
-        centre_m, centre_s, half = c_model, c_scene, 0.6 * case.diameter
+        centre_m, centre_s, half = c_model, c_scene, 0.6 * diameter
 
     fig = plt.figure(figsize=FIGSIZE, dpi=DPI)
     grid = fig.add_gridspec(4, 2, height_ratios=[1, 1, 1, 1.05], hspace=0.22, wspace=0.04,
@@ -256,10 +301,13 @@ def draw_features_figure(case: FeatureCase, out: Path, max_lines: int = 50, seed
             fused_colours = (cm, cs)
         _scatter(ax_m, model_cam[front], cm[front], centre_m, half, size=9)
         _scatter(ax_s, scene_cam, cs, centre_s, half, size=9)
+        for ax, shown in ((ax_m, front.any()), (ax_s, ok_s.any())):
+            if not shown:
+                no_data(ax, f"{NO_DATA}: no finite point")
         ax_m.set_title(f"model: {name} ({mf.shape[1]} ch)", fontsize=11)
         ax_s.set_title(f"scene candidate: {name}", fontsize=11)
         def clipped(c: np.ndarray) -> float:  # share of points with a component outside the model's range
-            return 100 * float(np.mean(((c <= 0) | (c >= 1)).any(axis=1)))
+            return 100 * float(np.mean(((c <= 0) | (c >= 1)).any(axis=1))) if len(c) else 0.0
 
         ax_s.text(0.01, 0.01, f"{len(cs)} points; {clipped(cs):.0f}% clipped in a component (model: {clipped(cm):.0f}%)",
                   transform=ax_s.transAxes, fontsize=8, color="0.3")
@@ -270,17 +318,22 @@ def draw_features_figure(case: FeatureCase, out: Path, max_lines: int = 50, seed
 
     ax = fig.add_subplot(grid[3, :])
     nn, inl = inlier_matches(case)
-    gap = 0.65 * case.diameter
+    inl = inl & ok_s & ok_m[nn] if len(ok_m) else inl
+    gap = 0.65 * diameter
     shift_m, shift_s = np.array([-gap, 0.0]) - c_model, np.array([gap, 0.0]) - c_scene
     m2, s2 = model_cam.copy(), scene_cam.copy()
     m2[:, :2] += shift_m
     s2[:, :2] += shift_s
     cm, cs = fused_colours if fused_colours is not None else (None, None)
-    _scatter(ax, m2[front], None if cm is None else cm[front], np.zeros(2), gap + 0.7 * case.diameter, size=4, alpha=0.35)
-    _scatter(ax, s2, cs, np.zeros(2), gap + 0.7 * case.diameter, size=6, alpha=0.35)
-    ax.set_ylim(0.6 * case.diameter, -0.6 * case.diameter)
+    _scatter(ax, m2[front], None if cm is None else cm[front], np.zeros(2), gap + 0.7 * diameter, size=4, alpha=0.35)
+    _scatter(ax, s2, cs, np.zeros(2), gap + 0.7 * diameter, size=6, alpha=0.35)
+    ax.set_ylim(0.6 * diameter, -0.6 * diameter)
+    if not front.any() and not ok_s.any():
+        no_data(ax, f"{NO_DATA}: no finite point")
     rng = np.random.default_rng(seed)
-    inliers, outliers = np.flatnonzero(inl), np.flatnonzero(~inl)
+    # outliers only among matches with both ends drawn: a line to a NaN point is no line
+    inliers = np.flatnonzero(inl)
+    outliers = np.flatnonzero(~inl & ok_s & (ok_m[nn] if len(ok_m) else False))
     drawn_in = rng.choice(inliers, min(max_lines, len(inliers)), replace=False) if len(inliers) else inliers
     drawn_out = rng.choice(outliers, min(max_lines // 3, len(outliers)), replace=False) if len(outliers) else outliers
     for idx, colour, lw, alpha in ((drawn_out, "tab:red", 0.6, 0.45), (drawn_in, "tab:green", 0.9, 0.9)):
@@ -294,8 +347,5 @@ def draw_features_figure(case: FeatureCase, out: Path, max_lines: int = 50, seed
     fig.suptitle(f"{case.dataset}: object {case.obj_id}, scene {case.scene_id}, image {case.im_id}, candidate {case.cand_id}\n"
                  "colours: per feature, a 3-component PCA fitted on the model and applied to both;\n"
                  "camera view, model at the registered pose", fontsize=11)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=DPI)
-    plt.close(fig)
-    return out
+    # the figure's own layout (its grid's margins), written atomically with the umask's mode
+    return save_figure(fig, out, dpi=DPI, tight=False)

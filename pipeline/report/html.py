@@ -8,6 +8,9 @@ URIs and the style sheet is inline, so the file can be mailed or archived alone.
 
 Entry points: :func:`write_report` (the ``freeze report`` command and Snakemake) and
 :func:`build_report` (the page as a string).
+
+Every table and chart takes the artifacts as they are: no rows, None, NaN and inf give
+"-" in a cell and "no data" in a chart (:mod:`pipeline.report.plots`), never an error.
 """
 
 from __future__ import annotations
@@ -55,18 +58,33 @@ def default_out(rp, dataset: str) -> Path:
 
 
 def read_scores(plan) -> dict[str, Any]:
-    """``scores.json`` of the dataset's score stage; fails naming the file when missing."""
+    """``scores.json`` of the dataset's score stage; fails naming the file when missing,
+    and when the score artifact is damaged (:class:`pipeline.store.DamagedArtifact`)."""
+    from pipeline.store import ensure_sound
+
     path = plan["score"].item_dir("all") / "scores.json"
     if not path.exists():
         raise FileNotFoundError(f"{path}: not scored yet; run `snakemake --cores 2 bop_all` "
                                 f"(with the same --config) first")
+    ensure_sound(path.parent)
     return json.loads(path.read_text())
+
+
+def _finite(v: Any) -> float:
+    """``v`` as a float; NaN when it is None, not a number, NaN or +-inf."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+    return f if np.isfinite(f) else float("nan")
 
 
 @dataclass
 class StageTiming:
     """Jobs of one stage: count, summed wall time (s), share of the dataset's total, and
-    the largest peak resident memory of a job (MB; NaN if no manifest says)."""
+    the largest peak resident memory of a job (MB). A job whose manifest has no finite
+    wall time adds nothing to the sum (NaN when no job has one); the peak is NaN when
+    no manifest gives a finite one."""
 
     stage: str
     signature: str
@@ -86,14 +104,17 @@ def stage_timings(plan) -> list[StageTiming]:
         walls, peaks = [], []
         for path in manifests:
             m = read_manifest(path)
-            walls.append(float(m.get("wall_time_s") or 0.0))
-            if m.get("peak_rss_mb") is not None:
-                peaks.append(float(m["peak_rss_mb"]))
-        rows.append(StageTiming(sp.stage, sp.signature, len(manifests), float(sum(walls)), 0.0,
+            # A manifest may say null, NaN or Infinity: an unknown time, not a huge one.
+            if np.isfinite(w := _finite(m.get("wall_time_s"))):
+                walls.append(w)
+            if np.isfinite(pk := _finite(m.get("peak_rss_mb"))):
+                peaks.append(pk)
+        wall = float(sum(walls)) if walls or not manifests else float("nan")
+        rows.append(StageTiming(sp.stage, sp.signature, len(manifests), wall, 0.0,
                                 max(peaks) if peaks else float("nan")))
-    total = sum(r.wall_s for r in rows)
+    total = float(np.nansum([r.wall_s for r in rows])) if rows else 0.0
     for r in rows:
-        r.share = r.wall_s / total if total > 0 else 0.0
+        r.share = r.wall_s / total if total > 0 and np.isfinite(r.wall_s) else 0.0
     return rows
 
 
@@ -274,10 +295,11 @@ def draw_samples(plan, samples: pd.DataFrame, size: int = PANEL_SIZE) -> list[Po
                                            plots.BLUE)
             verdict = "correct" if row.correct else "wrong"
             png = plots.image_png(plots.side_by_side(left, right, f"estimate ({verdict})", "ground truth", colour))
-            mssd = (f"MSSD {row.mssd:.1f} mm = {row.mssd_frac:.2f} d" if np.isfinite(row.mssd) else "MSSD -")
-            visib = f", {100 * row.visib:.0f}% visible" if np.isfinite(row.visib) else ""
+            mssd = (f"MSSD {row.mssd:.1f} mm = {fmt(_finite(row.mssd_frac), 2)} d" if np.isfinite(_finite(row.mssd))
+                    else "MSSD -")
+            visib = f", {100 * row.visib:.0f}% visible" if np.isfinite(_finite(row.visib)) else ""
             caption = (f"object {obj_id}, scene {scene_id} image {im_id}, estimate {int(row.est_id)} "
-                       f"(score {row.score:.3f}): {mssd}{visib}")
+                       f"(score {fmt(_finite(row.score))}): {mssd}{visib}")
             panels.append(PosePanel(png, caption, bool(row.correct), obj_id))
     finally:
         for r in renderers.values():
@@ -426,18 +448,30 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "", 
     return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
 
 
+def _column_means(values: Any, n: int) -> np.ndarray:
+    """(n,) mean over the rows of a (rows, n) table of recalls, ignoring NaN/inf/None;
+    NaN where a column has no finite value, or everywhere when the shape is not (rows, n)."""
+    a = plots.finite_or_nan(values)
+    if a.size == 0 or a.size % n:
+        return np.full(n, np.nan)
+    a = a.reshape(-1, n)
+    seen = np.isfinite(a).sum(axis=0)
+    # nansum / count instead of nanmean: an all-NaN column is NaN without a RuntimeWarning.
+    return np.where(seen > 0, np.nansum(a, axis=0) / np.maximum(seen, 1), np.nan)
+
+
 def _recall_table(recalls: dict[str, Any]) -> str:
-    """Recall per correctness threshold (VSD averaged over its tolerances tau)."""
+    """Recall per correctness threshold (VSD averaged over its tolerances tau). Missing,
+    NaN or inf recalls are shown as "-"; a list of the wrong length as "-" throughout."""
     from pipeline.metrics.evaluate import MSPD_THRESHOLDS, MSSD_THRESHOLDS, VSD_THETAS
 
     rows = []
     if recalls.get("vsd") is not None and len(recalls["vsd"]):
-        vsd = np.asarray(recalls["vsd"], dtype=float).mean(axis=0)
-        rows.append(("VSD (mean over τ)", "θ", VSD_THETAS, vsd))
+        rows.append(("VSD (mean over τ)", "θ", VSD_THETAS, _column_means(recalls["vsd"], len(VSD_THETAS))))
     if recalls.get("mssd") is not None:
-        rows.append(("MSSD", "× diameter", MSSD_THRESHOLDS, np.asarray(recalls["mssd"], float)))
+        rows.append(("MSSD", "× diameter", MSSD_THRESHOLDS, _column_means(recalls["mssd"], len(MSSD_THRESHOLDS))))
     if recalls.get("mspd") is not None:
-        rows.append(("MSPD", "px at 640 px", MSPD_THRESHOLDS, np.asarray(recalls["mspd"], float)))
+        rows.append(("MSPD", "px at 640 px", MSPD_THRESHOLDS, _column_means(recalls["mspd"], len(MSPD_THRESHOLDS))))
     out = []
     for name, unit, thr, rec in rows:
         header = [f"{name}: threshold ({unit})"] + [f"{t:g}" for t in np.round(thr, 2)]
@@ -499,7 +533,9 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
         add(f'<p class="note">Note: {_e(note)}</p>')
     correct_by_obj = table.groupby("obj_id")["correct"].agg(["sum", "count"]) if len(table) else None
     obj_rows = []
-    for o in scores.get("per_object", []):
+    for o in scores.get("per_object") or []:
+        if not np.isfinite(_finite(o.get("obj_id"))):
+            continue  # a row naming no object has nothing to show
         oid = int(o["obj_id"])
         c = (f"{int(correct_by_obj.loc[oid, 'sum'])} / {int(correct_by_obj.loc[oid, 'count'])}"
              if correct_by_obj is not None and oid in correct_by_obj.index else "-")
@@ -528,9 +564,9 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
     add("<h2>3. Time and memory per stage</h2>")
     add(_table(["stage", "signature", "jobs", "wall time (s)", "share", "peak RSS (MB)"],
                [[_e(r.stage), f"<code>{_e(r.signature)}</code>", str(r.jobs), fmt(r.wall_s, 1),
-                 f"{100 * r.share:.1f}%", fmt(r.peak_rss_mb, 0)] for r in timings],
+                 f"{fmt(100 * r.share, 1)}%", fmt(r.peak_rss_mb, 0)] for r in timings],
                cls="timing", left=2, keys=["stage", "signature", "jobs", "wall_s", "share", "peak_rss_mb"]))
-    total = sum(r.wall_s for r in timings)
+    total = float(np.nansum([r.wall_s for r in timings])) if timings else 0.0
     add(f'<p class="note">From every <code>_manifest.json</code> of the dataset\'s current stage folders: '
         f'{sum(r.jobs for r in timings)} jobs, {total:.1f} s of job wall time in all (jobs may have run in '
         f'parallel); peak RSS is the largest of any one job.</p>')
@@ -609,9 +645,8 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
 
 def write_report(rp, dataset: str, out: Path, samples: int = 12, run_label: str | None = None) -> Path:
     """Write the report page of ``dataset`` (see :func:`build_report`) to ``out``
-    atomically (a temporary sibling renamed into place); returns ``out``."""
-    from pipeline.store import atomic_write_text
+    atomically (a temporary sibling renamed into place), with the mode the umask gives a
+    new file (0644 under umask 022); returns ``out``."""
+    from pipeline.published_files import write_text_published
 
-    out = Path(out)
-    atomic_write_text(out, build_report(rp, dataset, samples=samples, run_label=run_label))
-    return out
+    return write_text_published(Path(out), build_report(rp, dataset, samples=samples, run_label=run_label))

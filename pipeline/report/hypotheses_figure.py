@@ -81,6 +81,8 @@ def hypothesis_cases(plan, limit: int = 6, scene_id: int | None = None, cand_id:
         if not path.exists():
             raise FileNotFoundError(f"{path} missing: run the refine stage first (snakemake --cores 2 bop_all)")
         frames.append(read_table(path))
+    if not frames:  # a dataset without scenes: nothing to draw (concat of nothing fails)
+        return []
     hyps = pd.concat(frames, ignore_index=True)
     if obj_id is not None:
         hyps = hyps[hyps.obj_id == obj_id]

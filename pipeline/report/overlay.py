@@ -14,11 +14,14 @@ def render_overlay(mesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, rgb: np.nd
     import cv2
 
     from pipeline.render import Renderer
+    from pipeline.report.plots import finite_max
     from pipeline.report.sar_figure import overlay
 
     H, W = rgb.shape[:2]
-    v = np.asarray(mesh.vertices) @ R.T + t
-    zfar = float(max(v[:, 2].max(), 1.0)) * 2 + 1000.0
+    v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3) @ R.T + t
+    # Far plane beyond the model's farthest finite vertex (an empty or non-finite model
+    # gives 1 mm, so the plane stays finite: a renderer cannot take NaN or inf).
+    zfar = max(finite_max(v[:, 2], 1.0), 1.0) * 2 + 1000.0
     with Renderer(W, H, znear=1.0, zfar=zfar) as r:
         r.add_mesh("model", mesh)
         color, d = r.render([("model", R, t)], K, rgb=True)

@@ -46,32 +46,44 @@ def overlay(crop: np.ndarray, render: np.ndarray, mask: np.ndarray, alpha: float
     return out.clip(0, 255).astype(np.uint8)
 
 
+def _similarity(values: np.ndarray, i: int) -> str:
+    """Variant ``i``'s similarity for a title: 3 decimals, "-" when missing or not finite."""
+    return f"{values[i]:.3f}" if 0 <= i < len(values) and np.isfinite(values[i]) else "-"
+
+
 def draw_sar_figure(cases: Sequence[SarCase], out: Path, title: str = "") -> Path:
-    """Write the figure of ``cases`` (one row each) to the PNG ``out``."""
+    """Write the figure of ``cases`` (one row each) to the PNG ``out``. A case whose
+    similarities are empty or all non-finite gets "no data" in its bar panel; non-finite
+    similarities are left out of the bars and of the axis limits."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.report.plots import save_figure
+    from pipeline.report.plots import NO_DATA, finite_or_nan, no_data, save_figure
 
     n = max(1, len(cases))
     fig, axes = plt.subplots(n, 4, figsize=(13, 3.2 * n), squeeze=False,
                              gridspec_kw={"width_ratios": [1, 1, 1, 1.4]})
     for row, case in zip(axes, cases):
+        # Similarities as stored may be empty, NaN or inf (a variant that could not be
+        # encoded): only finite ones are drawn and set the limits.
+        finite = finite_or_nan(case.similarities)
         row[0].imshow(case.crop)
         row[0].set_title(case.title, fontsize=9)
         row[1].imshow(overlay(case.crop, case.icp_render, case.icp_mask))
-        row[1].set_title(f"ICP pose (variant 0): {case.similarities[0]:.3f}", fontsize=9)
+        row[1].set_title(f"ICP pose (variant 0): {_similarity(finite, 0)}", fontsize=9)
         row[2].imshow(overlay(case.crop, case.sar_render, case.sar_mask))
-        row[2].set_title(f"SAR pose (variant {case.chosen}): {case.similarities[case.chosen]:.3f}", fontsize=9)
+        row[2].set_title(f"SAR pose (variant {case.chosen}): {_similarity(finite, case.chosen)}", fontsize=9)
         for ax in row[:3]:
             ax.set_xticks([])
             ax.set_yticks([])
-        finite = np.where(np.isfinite(case.similarities), case.similarities, np.nan)
+        if not np.isfinite(finite).any():
+            no_data(row[3], f"{NO_DATA}: no finite similarity")
+            continue
         colors = ["tab:green" if i == case.chosen else "tab:gray" for i in range(len(finite))]
-        row[3].bar(np.arange(len(finite)), finite, color=colors)
-        lo, hi = np.nanmin(finite), np.nanmax(finite)
+        row[3].bar(np.arange(len(finite)), np.nan_to_num(finite), color=colors)
+        lo, hi = float(np.nanmin(finite)), float(np.nanmax(finite))
         pad = max(0.01, 0.1 * (hi - lo))
         row[3].set_ylim(lo - pad, hi + pad)
         row[3].set_xlabel("symmetric variant", fontsize=8)
