@@ -8,7 +8,7 @@ image with its ground-truth pose). Its mask is the model rendered at the ground-
 pose where it agrees with the sensor's depth (as the ``tyol`` dataset's prior, built by
 the synth stage); the box is that mask's bounding box. For each mode and seed this runs
 ``freeze estimate --model --rgb --depth --camera --mask|--bbox -c scene_features.seed=S
--c register.seed=S`` and reads ``pose.json``: rotation and translation errors, MSSD in
+-c register.seed=S [-c KEY=VALUE ...]`` and reads ``pose.json``: rotation and translation errors, MSSD in
 diameters (right: below 0.1 d). Box mode also reports the share of the kept depth points
 within 5 mm of the model at the ground-truth pose. Writes the section ``## <label>:
 freeze estimate on the TYO-L frame`` of ``benchmarks/results/real.md``.
@@ -29,13 +29,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from real import RIGHT_MSSD, write_section  # noqa: E402
+from real import RIGHT_MSSD, tyol_frame, write_section  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--label", required=True)
     ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("-c", "--config", action="append", default=[],
+                    help="more run overrides for freeze estimate, KEY=VALUE (e.g. symmetries.threshold=0.005)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "real.md")
     args = ap.parse_args()
 
@@ -49,21 +51,8 @@ def main() -> None:
     from pipeline.geometry.sampling import sample_surface
     from pipeline.geometry.transforms import rotation_angle_deg
     from pipeline.metrics.pose_errors import mssd
-    from pipeline.plan import RunPlan
-    from stages import run_stage
 
-    rp = RunPlan(cfg.load_run({"datasets": "tyol"}))
-    ok, why = rp.available("tyol")
-    if not ok:
-        raise SystemExit(why)
-    plan = rp["tyol"]
-    if not plan["synth"].manifest("dataset").exists():
-        run_stage(plan, "synth", "dataset", progress=True)
-    ds = plan.bop()
-    (scene_id,) = ds.scene_ids()
-    (im_id,) = ds.image_ids(scene_id)
-    gt = ds.scene_gt(scene_id)[im_id][0]
-    diameter = ds.models_info()[gt.obj_id].diameter
+    ds, scene_id, im_id, gt, diameter = tyol_frame()
     mask = ds.load_mask(scene_id, im_id, 0)
     bbox = mask_to_bbox(mask)
     mesh = ds.load_model(gt.obj_id)
@@ -86,7 +75,8 @@ def main() -> None:
             for seed in (int(s) for s in args.seeds.split(",")):
                 out = tmp / f"{mode}{seed}"
                 cmd = [str(Path(sys.executable).parent / "freeze"), "estimate", *common, *prior, "--out", str(out),
-                       "-c", f"scene_features.seed={seed}", "-c", f"register.seed={seed}"]
+                       "-c", f"scene_features.seed={seed}", "-c", f"register.seed={seed}",
+                       *[a for kv in args.config for a in ("-c", kv)]]
                 proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
                 if proc.returncode != 0:
                     raise SystemExit(f"{mode} seed {seed}: freeze estimate failed:\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}")

@@ -38,6 +38,29 @@ RIGHT_MSSD = 0.1
 """A single pose is right when its MSSD is below this fraction of the diameter."""
 
 
+def tyol_frame():
+    """The TYO-L dataset's one frame, built by its synth stage when needed: (reader
+    (:class:`pipeline.bop.BopDataset`), scene id, image id, ground-truth pose
+    (:class:`pipeline.bop.GtPose`), diameter mm). Stops with the reason when
+    ../shared is absent."""
+    from pipeline import config as cfg
+    from pipeline.plan import RunPlan
+    from stages import run_stage
+
+    rp = RunPlan(cfg.load_run({"datasets": "tyol"}))
+    ok, why = rp.available("tyol")
+    if not ok:
+        raise SystemExit(why)
+    plan = rp["tyol"]
+    if not plan["synth"].manifest("dataset").exists():
+        run_stage(plan, "synth", "dataset", progress=True)
+    ds = plan.bop()
+    (scene_id,) = ds.scene_ids()
+    (im_id,) = ds.image_ids(scene_id)
+    gt = ds.scene_gt(scene_id)[im_id][0]
+    return ds, scene_id, im_id, gt, ds.models_info()[gt.obj_id].diameter
+
+
 def seed_manifest(folder: Path, seed: int) -> Path:
     """A run manifest: the default one with the scene-side seeds set to ``seed``."""
     path = folder / f"seed{seed}.yaml"

@@ -160,8 +160,11 @@ class SymmetriesParams(_Strict):
     """Parameters of the per-object symmetry estimation (pipeline/geometry/symmetry.py)."""
 
     n_points: int = Field(20000, ge=1000, description="surface samples of the model the estimation uses")
-    threshold: float = Field(0.003, gt=0, description="acceptance: symmetric mean point-to-plane distance as a "
-                                                       "fraction of the diameter")
+    threshold: float = Field(0.005, gt=0, description="acceptance: symmetric mean point-to-plane distance as a "
+                                                       "fraction of the diameter (0.005: a turn that moves the "
+                                                       "surface by less than a depth sensor resolves is a "
+                                                       "symmetry, which SAR then decides by texture; 0.003 "
+                                                       "missed the TYO-L basket's half turn, 0.0048 d)")
     seed: int = 0
 
 
