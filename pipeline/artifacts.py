@@ -516,6 +516,14 @@ class CacheListing:
         return asdict(self)
 
 
+def leftover_age_s(path: Path, now: float) -> float:
+    """Seconds since anything in the leftover ``path`` (a folder or file) last changed:
+    a publish still running keeps writing into its ``.tmp-*`` folder."""
+    newest = max((os.lstat(os.path.join(r, f)).st_mtime for r, _, fs in os.walk(path) for f in fs),
+                 default=path.lstat().st_mtime)
+    return now - max(newest, path.lstat().st_mtime)
+
+
 def current_signatures(run_plan, dataset: str) -> dict[str, str]:
     """stage -> signature of ``dataset`` in ``run_plan`` (a :class:`pipeline.plan.RunPlan`);
     raises when no plan can be built (no dataset manifest, BOP data not found...)."""
@@ -568,9 +576,7 @@ def list_artifacts(cache: Path, run, datasets: list[str] | None = None) -> Cache
                 incomplete = [c.name for c in children if not c.name.startswith(".") and not (c / MANIFEST_NAME).is_file()]
                 for c in children:
                     if c.name.startswith(LEFTOVER_PREFIXES):
-                        newest = max((os.lstat(os.path.join(r, f)).st_mtime for r, _, fs in os.walk(c) for f in fs),
-                                     default=c.lstat().st_mtime)
-                        listing.leftovers.append(Leftover(str(c), tree_size(c)[0], now - max(newest, c.lstat().st_mtime)))
+                        listing.leftovers.append(Leftover(str(c), tree_size(c)[0], leftover_age_s(c, now)))
                 note = ""
                 if current is None:
                     status = "unknown"

@@ -35,7 +35,11 @@ class VerifyReport:
 
 
 def _is_leftover(p: Path) -> bool:
-    return p.name.startswith((".tmp-", ".old-")) or (p.name.startswith(".") and p.name.endswith(".tmp"))
+    """A folder of an interrupted publish (:data:`pipeline.artifacts.LEFTOVER_PREFIXES`)
+    or a file of an interrupted :func:`pipeline.store.atomic_path` (``.<name>.<hex>.tmp``)."""
+    from pipeline.artifacts import LEFTOVER_PREFIXES
+
+    return p.name.startswith(LEFTOVER_PREFIXES) or (p.name.startswith(".") and p.name.endswith(".tmp"))
 
 
 def item_folders(cache: Path, datasets: Iterable[str] | None = None) -> Iterator[Path]:
@@ -75,6 +79,8 @@ def verify_cache(cache: Path, datasets: Iterable[str] | None = None, *, checksum
     called once per item (a progress bar)."""
     import time
 
+    from pipeline.artifacts import leftover_age_s
+
     cache = Path(cache)
     report = VerifyReport()
     if not cache.is_dir():
@@ -89,7 +95,7 @@ def verify_cache(cache: Path, datasets: Iterable[str] | None = None, *, checksum
             report.damaged[item] = problems
         advance()
     now = time.time()
-    report.leftovers = [p for p in leftovers(cache, datasets) if now - p.lstat().st_mtime >= leftover_min_age_s]
+    report.leftovers = [p for p in leftovers(cache, datasets) if leftover_age_s(p, now) >= leftover_min_age_s]
     if repair:
         for p in [*report.damaged, *report.leftovers]:
             if p.is_dir():

@@ -202,17 +202,6 @@ _STALE_NOTE = ("'Current' means: a stage signature the plan of the given run con
                "removed.")
 
 
-def _item_folder(path: Path) -> Path | None:
-    """The artifact item folder holding ``path`` (the nearest folder, ``path`` itself
-    included, with a manifest), or None."""
-    from pipeline.store import MANIFEST_NAME
-
-    for p in [Path(path), *Path(path).parents]:
-        if (p / MANIFEST_NAME).exists():
-            return p
-    return None
-
-
 def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
     """Add ``inspect``, ``ls``, ``gc`` and ``verify`` to ``app`` and ``features`` to ``show_app``."""
 
@@ -266,22 +255,20 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         time, peak RSS), its arrays (shape, dtype, chunks, compression ratio, NaN count, min/max/mean, L2 norms of
         feature rows), its Parquet tables (schema, rows, key metadata) and the tree of upstream artifacts it was
         built from."""
-        from pipeline.artifacts import NotAnArtifact, inspect_artifact
+        from pipeline.artifacts import NotAnArtifact, inspect_artifact, locate
         from pipeline.store import verify_item
 
-        item = _item_folder(path)
-        if item is not None:
-            problems = verify_item(item)
-            if problems:  # name the damaged file rather than fail inside a reader
-                for line in problems:
-                    _err().print(f"[red]damaged artifact: {escape(line)}")
-                _err().print("run `freeze verify --repair` to remove the damaged items; a rerun rebuilds them")
-                raise typer.Exit(1)
         try:
-            info = inspect_artifact(path)
+            problems = verify_item(locate(path).item_dir)
+            info = None if problems else inspect_artifact(path)
         except NotAnArtifact as e:
             _err().print(f"[red]{e}")
             raise typer.Exit(2)
+        if problems:  # name the damaged file rather than fail inside a reader
+            for line in problems:
+                _err().print(f"[red]damaged artifact: {escape(line)}")
+            _err().print("run `freeze verify --repair` to remove the damaged items; a rerun rebuilds them")
+            raise typer.Exit(1)
         if as_json:
             print(json.dumps(info, indent=2, default=str))
         else:

@@ -81,13 +81,17 @@ def make_signature(readable: str, key: str) -> str:
     return f"{readable}-{key[:8]}"
 
 
-def file_sha1(path: Path, chunk: int = 1 << 20) -> str:
-    """SHA-1 of a file's bytes."""
-    h = hashlib.sha1()
+def _hash_file(path: Path | str, h, chunk: int = 1 << 20) -> str:
+    """Hex digest of a file's bytes with the hashlib object ``h``, read in chunks."""
     with open(path, "rb") as f:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+def file_sha1(path: Path) -> str:
+    """SHA-1 of a file's bytes (the priors' and real samples' keys)."""
+    return _hash_file(path, hashlib.sha1())
 
 
 def library_versions() -> dict[str, str]:
@@ -142,13 +146,9 @@ def read_manifest(path: Path) -> dict[str, Any]:
 # 200 MB), far below the cost of computing any artifact.
 
 
-def file_digest(path: Path | str, chunk: int = 1 << 20) -> str:
+def file_digest(path: Path | str) -> str:
     """SHA-256 hex digest of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
+    return _hash_file(path, hashlib.sha256())
 
 
 def file_table(folder: Path | str) -> dict[str, dict[str, Any]]:
