@@ -194,7 +194,7 @@ def main() -> None:
             geometric.append(("gedi", {"weights": str(_gedi_weights(tmp)), "radii": [0.3, 0.4]}))
         for name, params in geometric:
             enc = build_encoder(EncoderSpec(name=name, params=params))
-            n = 5000 if name == "fpfh" else 1000  # GeDi costs ~1 min per 1000 points on 2 cores
+            n = 5000 if name == "fpfh" else 1000  # GeDi: one run; gedi_speed.py compares it with version 1
             sec = _median_time(lambda: enc.encode(points[:n], normals[:n], diameter), args.repeat if name == "fpfh" else 1)
             rows.append((f"{name} ({enc.dim}-d)", f"{1000 * sec / n:.3f} s per 1000 points", f"{n} points, 2 radii"))
 

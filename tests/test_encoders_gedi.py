@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.encoders.gedi_ops import ball_query, furthest_point_sample, gather_points, group_points
+from pipeline.encoders.gedi_ops import (
+    ball_query,
+    ball_query_hits,
+    first_of_each_key,
+    furthest_point_sample,
+    furthest_point_sample_with_sqdist,
+    gather_points,
+    group_points,
+)
 
 # --- brute-force references (one point at a time, as the kernels loop) ---------------
 
@@ -124,6 +132,44 @@ def test_ball_query_nsample_larger_than_cloud():
     assert got[0].tolist() == [0, 1, 2, 3, 4, 5, 0, 0, 0]
 
 
+def test_fps_distances_are_the_ball_query_distances():
+    rng = np.random.default_rng(8)
+    xyz = rng.uniform(-1, 1, size=(2, 200, 3)).astype(np.float32)
+    xyz[0, :30] *= 0.01  # skipped by the sampling, still in the distances
+    t = torch.from_numpy(xyz)
+    idx, sq = furthest_point_sample_with_sqdist(t, 48)
+    assert torch.equal(idx, furthest_point_sample(t, 48)) and sq.shape == (2, 48, 200)
+    centres = gather_points(t, idx).numpy()
+    d = centres[:, :, None, :] - xyz[:, None, :, :]  # float32, summed as the kernels: x + y, then + z
+    expected = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
+    np.testing.assert_array_equal(sq.numpy(), expected)
+    for radius, nsample in [(0.3, 32), (0.6, 8)]:
+        reused = ball_query_hits(radius, nsample, t, gather_points(t, idx), sq)
+        fresh = ball_query_hits(radius, nsample, t, gather_points(t, idx))
+        assert all(torch.equal(a, b) for a, b in zip(reused, fresh))
+
+
+@pytest.mark.parametrize("radius, nsample", [(0.2, 32), (0.05, 8)])
+def test_ball_query_hits_are_the_ball_query_without_padding(radius, nsample):
+    rng = np.random.default_rng(9)
+    xyz = rng.uniform(-1, 1, size=(2, 300, 3)).astype(np.float32)
+    query = np.concatenate([xyz[:, :10], rng.uniform(-1.5, 1.5, size=(2, 10, 3)).astype(np.float32)], axis=1)
+    q, p = ball_query_hits(radius, nsample, torch.from_numpy(xyz), torch.from_numpy(query))
+    assert (torch.diff(q * 300 + p) > 0).all()  # sorted by query, then point; no repeats
+    for b in range(2):
+        ref = _ball_ref(radius, nsample, xyz[b], query[b])
+        for s in range(20):
+            # the padding repeats the first hit; a query without hits gets point 0
+            assert p[q == b * 20 + s].tolist() == sorted(set(ref[s].tolist())), (b, s)
+
+
+def test_first_of_each_key():
+    group = torch.tensor([0, 0, 0, 1, 1, 2, 2, 2])
+    key = torch.tensor([5, 3, 5, 5, 5, 0, 7, 0])
+    assert first_of_each_key(group, key).tolist() == [0, 1, 3, 5, 6]
+    assert first_of_each_key(group[:0], key[:0]).tolist() == []
+
+
 def test_gather_and_group():
     rng = np.random.default_rng(4)
     pts = torch.from_numpy(rng.normal(size=(2, 7, 3)).astype(np.float32))
@@ -143,9 +189,12 @@ def test_gather_and_group():
 from pipeline.encoders.gedi import (  # noqa: E402
     STATE_KEY,
     GeDiEncoder,
+    GeDiInference,
     GeDiNet,
+    fold_layers,
     load_gedi_net,
     local_reference_frame,
+    torch_threads,
 )
 from pipeline.encoders.registry import build_encoder, known_encoders  # noqa: E402
 
@@ -301,3 +350,110 @@ def test_encoder_shape_norm_and_rigid_invariance(gedi_weights):
     np.testing.assert_allclose(d1, d0, atol=2e-4)  # fixed seeds: same neighbours drawn
     # and descriptors do tell points apart
     assert (d0[:, :32] @ d0[:, :32].T)[np.triu_indices(40, 1)].mean() < 0.999
+
+
+# --- the inference path against the reference forward ------------------------------------
+
+
+def test_folded_layers_equal_the_modules():
+    torch.manual_seed(2)
+    block = torch.nn.Sequential(
+        torch.nn.Conv2d(5, 7, 1, bias=False), torch.nn.BatchNorm2d(7), torch.nn.ReLU(),
+        torch.nn.Conv2d(7, 4, 1, bias=True), torch.nn.BatchNorm2d(4),
+    )
+    for m in block.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-1, 1), m.running_var.uniform_(0.2, 3), m.weight.data.uniform_(-2, 2), m.bias.data.uniform_(-1, 1)
+    block.eval()
+    x = torch.randn(3, 5, 6, 2)
+    expected = block(x).permute(0, 2, 3, 1).reshape(-1, 4)
+    rows = x.permute(0, 2, 3, 1).reshape(-1, 5)
+    layers = fold_layers(block)
+    assert [layer.relu for layer in layers] == [True, False]
+    for layer in layers:
+        rows = layer(rows)
+    torch.testing.assert_close(rows, expected, rtol=1e-5, atol=1e-5)
+
+
+def _patches_with_repeats(seed: int, batch: int, distinct: int, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Curved patches (batch, 3, n) drawn with replacement from ``distinct`` points each,
+    and the index of each drawn point (batch, n) (equal index: equal point)."""
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.rand(batch, 2, distinct, generator=g) * 2 - 1
+    bend = torch.rand(batch, 1, 1, generator=g) - 0.5
+    base = torch.cat([xy, bend * (xy[:, :1] ** 2 - xy[:, 1:] ** 2)], 1)
+    pick = torch.randint(0, distinct, (batch, n), generator=g)
+    return torch.gather(base, 2, pick.unsqueeze(1).expand(-1, 3, -1)).contiguous(), pick
+
+
+@pytest.mark.parametrize("distinct", [300, 40])  # 40: fewer points than the first level's 128 centres
+def test_inference_equals_the_reference_forward(gedi_weights, distinct):
+    net = load_gedi_net(gedi_weights)
+    fast = GeDiInference(net)
+    patches, ids = _patches_with_repeats(3, 6, distinct, 512)
+    with torch.inference_mode(), torch_threads(1):  # one thread: quicker on a busy machine
+        ref = net(patches)
+        for got in (fast(patches), fast(patches, ids)):
+            assert got.shape == (6, 32)
+            assert (ref * got).sum(1).min() > 0.99999
+            torch.testing.assert_close(got, ref, rtol=0, atol=1e-4)
+        assert torch.equal(fast(patches, ids), fast(patches, ids))  # deterministic
+
+
+def _v1_descriptors(enc: GeDiEncoder, pts: np.ndarray, radius: float) -> np.ndarray:
+    """Version 1's loop: draws in groups of batch_size (each keypoint's neighbours, then
+    each keypoint's patch), the reference forward on each group."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(enc.seed)
+    hits = cKDTree(pts).query_ball_point(pts, radius, return_sorted=True)
+    cloud = torch.from_numpy(pts)
+    out = []
+    for start in range(0, len(pts), enc.batch_size):
+        group = range(start, min(start + enc.batch_size, len(pts)))
+        nbr = torch.from_numpy(np.stack([enc._draw(np.asarray(hits[i], dtype=np.int64), rng) for i in group]))
+        pick = torch.from_numpy(np.stack([rng.choice(enc.n_lrf, enc.n_patch, replace=False) for _ in group]))
+        kp, nbrs = cloud[start : group.stop], cloud[nbr]
+        lrf = local_reference_frame(kp, nbrs, radius)
+        local = (torch.gather(nbrs, 1, pick.unsqueeze(-1).expand(-1, -1, 3)) - kp.unsqueeze(1)) / radius
+        with torch.inference_mode(), torch_threads(1):
+            out.append(enc.net((lrf.transpose(1, 2) @ local.transpose(1, 2)).float()).numpy())
+    return np.concatenate(out)
+
+
+def _bent_cloud(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(-30, 30, size=(n, 2))
+    return np.column_stack([uv, 0.02 * uv[:, 0] ** 2 - 0.01 * uv[:, 0] * uv[:, 1]])
+
+
+def test_encoder_equals_version_1(gedi_weights):
+    """Same seeded patches as version 1 (several draw groups per network call, a short
+    last call), same descriptors up to float rounding."""
+    pts = _bent_cloud(40, 10)
+    enc = build_encoder({"name": "gedi", "params": {"weights": str(gedi_weights), "radii": [0.3], "n_lrf": 200,
+                                                    "n_patch": 128, "batch_size": 8, "net_batch": 20}})
+    assert enc.net_batch == 24
+    diameter = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    got = enc.encode(pts, None, diameter)
+    ref = _v1_descriptors(enc, pts, 0.3 * diameter)
+    assert (got * ref).sum(1).min() > 0.99999
+    np.testing.assert_allclose(got, ref, atol=1e-4)
+
+
+def test_encoder_output_does_not_depend_on_threads_or_calls(gedi_weights):
+    pts = _bent_cloud(40, 11)
+    params = {"weights": str(gedi_weights), "radii": [0.3], "n_lrf": 200, "n_patch": 128, "batch_size": 8}
+    enc = build_encoder({"name": "gedi", "params": {**params, "net_batch": 16}})
+    before = torch.get_num_threads()
+    try:
+        runs = []
+        for threads in (1, 2, 2):
+            torch.set_num_threads(threads)
+            runs.append(enc.encode(pts, None, 50.0))
+            assert torch.get_num_threads() == threads  # restored after the call
+    finally:
+        torch.set_num_threads(before)
+    assert np.array_equal(runs[0], runs[1]) and np.array_equal(runs[1], runs[2])
+    other = build_encoder({"name": "gedi", "params": {**params, "net_batch": 40}}).encode(pts, None, 50.0)
+    np.testing.assert_allclose(other, runs[0], atol=1e-5)

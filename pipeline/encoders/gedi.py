@@ -23,6 +23,30 @@ for point cloud registration", TPAMI 2022) describes a keypoint by the points ar
 Multi-scale as in the paper: radii 0.3 and 0.4 of the object diameter, one 32-d
 descriptor each, concatenated (64-d). Everything runs on CPU, or CUDA when present.
 
+Inference (:class:`GeDiInference`) computes the same function as ``GeDiNet.forward``
+with less work (``benchmarks/gedi_speed.py``, ``benchmarks/results/gedi_speed.md``):
+
+- batch norms folded into the preceding 1x1 convolutions / linear layers, which run as
+  plain matrix products on (rows, channels) tensors, in blocks of rows that stay in
+  cache through all the layers of a shared MLP;
+- shared MLPs run only on distinct rows: a group's padding repeats (ball query) and a
+  patch's repeated neighbours (drawn with replacement when the ball holds fewer than
+  ``n_lrf`` points) give identical rows, and the max-pool over a group does not change
+  when a row is left out that another row equals. At the second level, the part of
+  the first layer that depends on a point's features is computed once per point;
+- the ball query reuses the distances that farthest-point sampling computed.
+
+The encoder runs each network call on one thread, and as many calls at once as torch
+has threads (``torch.get_num_threads()``): most of the network's steps are small
+element-wise ones, and threads inside one step wait for each other at every step (with
+other jobs on the cores, version 1's farthest-point sampling took 10x longer on 2
+threads than on 1, ``benchmarks/results/gedi_speed.md``); independent calls do not
+wait. One thread per call also makes the result independent of the thread count.
+
+Descriptors differ from ``GeDiNet.forward`` by float rounding only (cosine > 0.9999 in
+``tests/test_encoders_gedi.py``); sampling and grouping are bit for bit the reference
+kernels' on the same input.
+
 Weights: the official checkpoint (``data/chkpts/3dmatch/chkpt.tar`` of the GeDi
 repository's ``download_data.py``) is a ``torch.load`` dict whose
 ``pnet_model_state_dict`` holds the network; it is loaded with ``weights_only=True`` and
@@ -36,8 +60,12 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -45,7 +73,15 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-from pipeline.encoders.gedi_ops import ball_query, furthest_point_sample, gather_points, group_points
+from pipeline.encoders.gedi_ops import (
+    ball_query,
+    ball_query_hits,
+    first_of_each_key,
+    furthest_point_sample,
+    furthest_point_sample_with_sqdist,
+    gather_points,
+    group_points,
+)
 from pipeline.encoders.registry import GeometricEncoder, WeightsNotFound, register_encoder, resolve_weights_path
 
 GEDI_DIM = 32
@@ -206,6 +242,200 @@ def _sha1(path: Path) -> str:
     return h.hexdigest()
 
 
+# --- inference path ----------------------------------------------------------------------
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` torch threads (intra-op), then restore the setting.
+
+    The setting is process-wide: not for blocks that run while other Python threads
+    use torch."""
+    before = torch.get_num_threads()
+    if n == before:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+@dataclass(frozen=True)
+class Dense:
+    """One 1x1 convolution or linear layer with the batch norm after it folded in, on
+    rows: ``x`` (P, C_in) -> ``x @ weight.T + bias`` (P, C_out), then ReLU if ``relu``."""
+
+    weight: torch.Tensor  # (C_out, C_in) float32
+    bias: torch.Tensor  # (C_out,) float32
+    relu: bool
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        y = torch.addmm(self.bias, x, self.weight.t())
+        return y.relu_() if self.relu else y
+
+
+def fold_layers(block: nn.Module) -> list[Dense]:
+    """The layers of ``block`` (eval mode) as :class:`Dense` layers: each 1x1 Conv1d /
+    Conv2d / Linear with the BatchNorm and ReLU that follow it; Dropout is the identity.
+
+    Folding uses the running statistics, in float64 before rounding to float32:
+    ``BN(Wx + c) = s * (Wx + c - mean) + beta`` with ``s = gamma / sqrt(var + eps)``.
+    """
+    layers: list[dict[str, Any]] = []
+    for m in block.modules():
+        if list(m.children()):
+            continue  # containers: their leaves come next, in execution order
+        if isinstance(m, (nn.Conv1d, nn.Conv2d, nn.Linear)):
+            if isinstance(m, (nn.Conv1d, nn.Conv2d)) and any(k != 1 for k in m.kernel_size):
+                raise ValueError(f"fold_layers: only 1x1 convolutions, got kernel {m.kernel_size}")
+            w = m.weight.detach().double().reshape(m.weight.shape[0], -1)
+            b = m.bias.detach().double() if m.bias is not None else w.new_zeros(w.shape[0])
+            layers.append({"w": w, "b": b, "relu": False})
+        elif isinstance(m, (nn.BatchNorm1d, nn.BatchNorm2d)):
+            last = layers[-1]
+            s = m.weight.detach().double() / torch.sqrt(m.running_var.double() + m.eps)
+            last["w"] = last["w"] * s.unsqueeze(1)
+            last["b"] = (last["b"] - m.running_mean.double()) * s + m.bias.detach().double()
+        elif isinstance(m, nn.ReLU):
+            layers[-1]["relu"] = True
+        elif not isinstance(m, nn.Dropout):
+            raise ValueError(f"fold_layers: unexpected layer {type(m).__name__}")
+    return [Dense(d["w"].float().contiguous(), d["b"].float().contiguous(), d["relu"]) for d in layers]
+
+
+def run_layers(layers: Sequence[Dense], x: torch.Tensor) -> torch.Tensor:
+    """Rows ``x`` (P, C_in) through ``layers`` -> (P, C_out)."""
+    for layer in layers:
+        x = layer(x)
+    return x
+
+
+# Rows per block in pooled_layers: a block's activations (at most 1024 x 1024 float32,
+# 4 MB) stay in cache from one layer to the next; the 128- and 256-channel layers are
+# memory-bound otherwise (1.7x slower for the first level's MLP, one thread, this CPU).
+ROW_BLOCK = 1024
+
+
+def pooled_layers(
+    first: Callable[[int, int], torch.Tensor], rest: Sequence[Dense], group: torch.Tensor, n: int
+) -> torch.Tensor:
+    """Per-group maxima (n, C_out) of a shared MLP over P rows, computed in blocks of
+    ``ROW_BLOCK`` rows: ``first(a, b)`` gives the first layer's outputs (b - a, C) for
+    rows a..b, ``rest`` are the remaining layers, ``group`` (P,) int64 in [0, n) the
+    group of each row; every group needs a row (an empty one would stay -inf)."""
+    P = len(group)
+    out: torch.Tensor | None = None
+    for a in range(0, P, ROW_BLOCK):
+        b = min(a + ROW_BLOCK, P)
+        y = run_layers(rest, first(a, b))
+        if out is None:
+            out = torch.full((n, y.shape[1]), -torch.inf, dtype=y.dtype, device=y.device)
+        out.scatter_reduce_(0, group[a:b].unsqueeze(1).expand_as(y), y, "amax")
+    assert out is not None, "pooled_layers: no rows"
+    return out
+
+
+class GeDiInference:
+    """``GeDiNet.forward`` for inference, restructured for speed on CPU; same function
+    up to float rounding (see the module doc). Built from a network in eval mode; the
+    weights are copied (folded) at construction.
+
+    Call with ``patches`` (B, 3, N) float32 (in the LRF, scaled by 1/r) and optionally
+    ``point_ids`` (B, N) int64 >= 0: equal ids within a patch promise equal points (the
+    encoder passes the cloud index of each patch point), so their rows are computed
+    once. Returns descriptors (B, 32), unit norm. Fastest with one intra-op thread
+    (``torch_threads(1)``), as the encoder calls it: see the module doc.
+    """
+
+    def __init__(self, net: GeDiNet) -> None:
+        if net.training:
+            raise ValueError("GeDiInference: the network must be in eval mode (batch norms are folded)")
+        q = net.qnet
+        self.q_points = fold_layers(nn.Sequential(q.conv1, q.conv2, q.conv3))  # per point, then max
+        self.q_head = fold_layers(nn.Sequential(q.fc1, q.fc2, q.fc3))
+        self.levels = [(sa, fold_layers(sa.mlps[0])) for sa in (net.samodule1, net.samodule2)]
+        self.global_level = fold_layers(net.samodule3.mlps[0])
+        self.head = fold_layers(net.fc_layer)
+
+    def __call__(self, patches: torch.Tensor, point_ids: torch.Tensor | None = None) -> torch.Tensor:
+        B, _, N = patches.shape
+        patches = patches.float()
+        ids = torch.arange(N, device=patches.device).expand(B, N) if point_ids is None else point_ids.long()
+        with torch.inference_mode():
+            rot = self._rotation(patches, ids)
+            xyz = (rot @ patches).transpose(1, 2).contiguous()  # (B, N, 3), as the reference
+            feats: torch.Tensor | None = None
+            for sa, layers in self.levels:
+                xyz, feats, ids = self._grouped_level(sa, layers, xyz, feats, ids)
+            assert feats is not None
+            S = xyz.shape[1]
+            rows = torch.cat([xyz, feats], dim=-1).reshape(B * S, -1)  # absolute xyz, then features
+            patch = torch.arange(B, device=rows.device).repeat_interleave(S)
+            top = self.global_level[0]
+            g = pooled_layers(lambda a, b: top(rows[a:b]), self.global_level[1:], patch, B)  # (B, 1024)
+            return F.normalize(run_layers(self.head, g), p=2, dim=1)
+
+    def _rotation(self, patches: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+        """Rotations (B, 3, 3) from the quaternion network, run on each patch's distinct
+        points only (the max over the points does not see repeats)."""
+        B, _, N = patches.shape
+        pts = patches.transpose(1, 2).reshape(B * N, 3)
+        patch = torch.arange(B, device=patches.device).repeat_interleave(N)
+        rows = first_of_each_key(patch, ids.reshape(-1))
+        pts, patch = pts[rows], patch[rows]
+        top = self.q_points[0]
+        pooled = pooled_layers(lambda a, b: top(pts[a:b]), self.q_points[1:], patch, B)  # (B, 1024)
+        q = run_layers(self.q_head, pooled)
+        q = q + torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
+        return quaternion_to_matrix(F.normalize(q, p=2, dim=1))
+
+    def _grouped_level(
+        self, sa: SetAbstraction, layers: Sequence[Dense], xyz: torch.Tensor, feats: torch.Tensor | None, ids: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One set-abstraction level with centres: xyz (B, N, 3), feats (B, N, C) or None,
+        ids (B, N) -> centres (B, S, 3), their features (B, S, C'), their ids (B, S).
+
+        Rows are (centre, neighbour) pairs: the neighbour relative to the centre, then
+        its features; each distinct pair once (the ball query's padding repeats the
+        first hit, and equal ids are equal points)."""
+        B, N = xyz.shape[0], xyz.shape[1]
+        centres, sqdist = furthest_point_sample_with_sqdist(xyz, sa.npoint)  # (B, S), (B, S, N)
+        new_xyz = gather_points(xyz, centres)  # (B, S, 3)
+        S = new_xyz.shape[1]
+        group, point = ball_query_hits(sa.radius, sa.nsample, xyz, new_xyz, sqdist)  # group in [0, B*S)
+        batch = torch.div(group, S, rounding_mode="floor")
+        keep = first_of_each_key(group, ids[batch, point])
+        group, flat = group[keep], batch[keep] * N + point[keep]  # flat: index into (B*N)
+        rel = xyz.reshape(B * N, 3)[flat] - new_xyz.reshape(B * S, 3)[group]  # as grouped - centre
+        feats_flat = None if feats is None else feats.reshape(B * N, -1)
+        pooled = pooled_layers(_pair_layer(layers[0], rel, flat, feats_flat), layers[1:], group, B * S)
+        return new_xyz, pooled.view(B, S, -1), ids.gather(1, centres)
+
+
+def _pair_layer(
+    layer: Dense, rel: torch.Tensor, point: torch.Tensor, feats: torch.Tensor | None
+) -> Callable[[int, int], torch.Tensor]:
+    """The first layer of a grouped level, as ``first`` of :func:`pooled_layers`, on the
+    pair rows [rel (P, 3), features (P, C) of ``point`` (P,), an index into ``feats``
+    (M, C)] (only rel without features).
+
+    With features, the layer is W_xyz @ rel + W_feat @ f + bias. A point's features are
+    the same in every group it is in, so W_feat @ f + bias is computed once per point (M
+    rows instead of P, a sixth or fewer at the second level) and gathered per pair."""
+    if feats is None:
+        return lambda a, b: layer(rel[a:b])
+    w_xyz, w_feat = layer.weight[:, :3], layer.weight[:, 3:]
+    per_point = torch.addmm(layer.bias, feats, w_feat.t())  # (M, C_out)
+
+    def first(a: int, b: int) -> torch.Tensor:
+        y = torch.addmm(per_point[point[a:b]], rel[a:b], w_xyz.t())
+        return y.relu_() if layer.relu else y
+
+    return first
+
+
 # --- local reference frame and patches ---------------------------------------------------
 
 
@@ -246,12 +476,19 @@ class GeDiEncoder(GeometricEncoder):
     weights: path of the official checkpoint (see the module doc), relative to
     ``weights_dir`` unless absolute.
     n_lrf / n_patch: neighbours for the frame / points fed to the network.
-    batch_size: keypoints per network batch. device: ``auto`` (CUDA when present),
-    ``cpu`` or ``cuda``. seed: neighbour sampling seed (outputs are deterministic).
+    batch_size: keypoints per group of random draws. The seeded draws are made group by
+    group (each keypoint's neighbours, then each keypoint's patch), as version 1 made
+    them with its network batches, so the same value gives the same patches.
+    net_batch: keypoints per network call (rounded up to a multiple of ``batch_size``);
+    memory grows with it, the descriptors do not change beyond float rounding.
+    device: ``auto`` (CUDA when present), ``cpu`` or ``cuda``. seed: neighbour sampling
+    seed (outputs are deterministic).
     """
 
     name = "gedi"
-    version = "1"
+    # 2: the inference path of GeDiInference (same descriptors up to float rounding,
+    # cosine > 0.9999); new bits, so a new cache key.
+    version = "2"
 
     def __init__(
         self,
@@ -260,6 +497,7 @@ class GeDiEncoder(GeometricEncoder):
         n_lrf: int = 4000,
         n_patch: int = 512,
         batch_size: int = 64,
+        net_batch: int = 128,
         device: str = "auto",
         seed: int = 0,
         weights_dir: str | None = None,
@@ -267,16 +505,20 @@ class GeDiEncoder(GeometricEncoder):
         radii = [float(r) for r in radii]
         if not radii or any(r <= 0 for r in radii):
             raise ValueError(f"gedi: radii must be a non-empty list of positive fractions, got {radii}")
-        if n_lrf <= 0 or n_patch <= 0 or n_patch > n_lrf or batch_size <= 0:
-            raise ValueError(f"gedi: need 0 < n_patch <= n_lrf and batch_size > 0, got {n_patch}, {n_lrf}, {batch_size}")
+        if n_lrf <= 0 or n_patch <= 0 or n_patch > n_lrf or batch_size <= 0 or net_batch <= 0:
+            raise ValueError(
+                f"gedi: need 0 < n_patch <= n_lrf, batch_size > 0 and net_batch > 0, got {n_patch}, {n_lrf}, {batch_size}, {net_batch}"
+            )
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.weights = resolve_weights_path(weights, weights_dir)
         self.net = load_gedi_net(self.weights, device)
+        self.inference = GeDiInference(self.net)
         self.weights_sha1 = _sha1(self.weights)
         self.device = torch.device(device)
         self.radii = radii
         self.n_lrf, self.n_patch, self.batch_size, self.seed = int(n_lrf), int(n_patch), int(batch_size), int(seed)
+        self.net_batch = -(-int(net_batch) // self.batch_size) * self.batch_size
         self.dim = GEDI_DIM * len(radii)
 
     def signature(self) -> str:
@@ -310,24 +552,83 @@ class GeDiEncoder(GeometricEncoder):
         parts = [self._encode_radius(pts, tree, r * diameter) for r in self.radii]
         return np.concatenate(parts, axis=1).astype(np.float32)
 
-    def _encode_radius(self, pts: np.ndarray, tree: cKDTree, radius: float) -> np.ndarray:
-        rng = np.random.default_rng(self.seed)
-        hits = tree.query_ball_point(pts, radius, return_sorted=True)
-        out = np.empty((len(pts), GEDI_DIM), dtype=np.float32)
+    def _encode_radius(self, pts: np.ndarray, tree: cKDTree, radius: float, count: int | None = None) -> np.ndarray:
+        """Descriptors (count, 32) of the first ``count`` (default: all) points of ``pts``
+        (N, 3) float64 mm, in the whole cloud, at ``radius`` mm.
+
+        Keypoints go through the network ``net_batch`` at a time. On CPU, as many calls
+        run at once as torch has threads, each on one thread (see the module doc); the
+        random draws are made in order on this thread, so the result does not depend on
+        which call finishes first.
+        """
+        count = len(pts) if count is None else min(int(count), len(pts))
         cloud = torch.from_numpy(pts)
-        for start in range(0, len(pts), self.batch_size):
-            stop = min(start + self.batch_size, len(pts))
-            nbr_idx = np.stack([self._draw(np.asarray(hits[i], dtype=np.int64), rng) for i in range(start, stop)])
-            patch_idx = np.stack([rng.choice(self.n_lrf, self.n_patch, replace=False) for _ in range(start, stop)])
-            kp = cloud[start:stop]
-            nbrs = cloud[torch.from_numpy(nbr_idx)]  # (b, n_lrf, 3) float64
-            lrf = local_reference_frame(kp, nbrs, radius)
-            sel = torch.gather(nbrs, 1, torch.from_numpy(patch_idx).unsqueeze(-1).expand(-1, -1, 3))
-            local = (sel - kp.unsqueeze(1)) / radius
-            patches = (lrf.transpose(1, 2) @ local.transpose(1, 2)).float()  # (b, 3, n_patch)
+        out = np.empty((count, GEDI_DIM), dtype=np.float32)
+
+        def describe(start: int, nbr_idx: np.ndarray, patch_idx: np.ndarray) -> None:
             with torch.inference_mode():
-                out[start:stop] = self.net(patches.to(self.device)).cpu().numpy()
+                patches, ids = self._patches(cloud, start, nbr_idx, patch_idx, radius)
+                desc = self.inference(patches.to(self.device), ids.to(self.device))
+            out[start : start + len(desc)] = desc.cpu().numpy()
+
+        calls = self._network_calls(pts, tree, radius, count)
+        workers = torch.get_num_threads() if self.device.type == "cpu" else 1
+        with torch_threads(1):
+            if workers == 1:
+                for call in calls:
+                    describe(*call)
+                return out
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                pending: deque[Future[None]] = deque()
+                for call in calls:
+                    pending.append(pool.submit(describe, *call))
+                    if len(pending) > workers:  # at most one call waiting: bounded memory
+                        pending.popleft().result()
+                for future in pending:
+                    future.result()
         return out
+
+    def _network_calls(
+        self, pts: np.ndarray, tree: cKDTree, radius: float, count: int
+    ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """(start, neighbour indices, patch positions) of each network call, in order:
+        see :meth:`_draw_patches`. Neighbours are looked up for one call's keypoints at a
+        time, so memory does not grow with the cloud."""
+        rng = np.random.default_rng(self.seed)
+        for start in range(0, count, self.net_batch):
+            hits = tree.query_ball_point(pts[start : min(start + self.net_batch, count)], radius, return_sorted=True)
+            yield (start, *self._draw_patches(hits, rng))
+
+    def _draw_patches(self, hits: Sequence[list[int]], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """For keypoints with neighbour lists ``hits`` (ascending indices): indices
+        (b, n_lrf) of their frame neighbours into the cloud and positions (b, n_patch) of
+        their patch points among those, drawn group by group as the class doc says."""
+        b = len(hits)
+        nbr_idx = np.empty((b, self.n_lrf), dtype=np.int64)
+        patch_idx = np.empty((b, self.n_patch), dtype=np.int64)
+        for start in range(0, b, self.batch_size):
+            group = range(start, min(start + self.batch_size, b))
+            for i in group:
+                nbr_idx[i] = self._draw(np.asarray(hits[i], dtype=np.int64), rng)
+            for i in group:
+                patch_idx[i] = rng.choice(self.n_lrf, self.n_patch, replace=False)
+        return nbr_idx, patch_idx
+
+    def _patches(
+        self, cloud: torch.Tensor, start: int, nbr_idx: np.ndarray, patch_idx: np.ndarray, radius: float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Network inputs of keypoints ``start .. start + b`` of ``cloud`` (N, 3) float64:
+        patches (b, 3, n_patch) float32 in their frames, scaled by 1/radius, and the cloud
+        index (b, n_patch) of each patch point (equal indices: equal points)."""
+        nbr = torch.from_numpy(nbr_idx)
+        pick = torch.from_numpy(patch_idx)
+        kp = cloud[start : start + len(nbr)]
+        nbrs = cloud[nbr]  # (b, n_lrf, 3) float64
+        lrf = local_reference_frame(kp, nbrs, radius)
+        sel = torch.gather(nbrs, 1, pick.unsqueeze(-1).expand(-1, -1, 3))
+        local = (sel - kp.unsqueeze(1)) / radius
+        patches = (lrf.transpose(1, 2) @ local.transpose(1, 2)).float()  # (b, 3, n_patch)
+        return patches, torch.gather(nbr, 1, pick)
 
     def _draw(self, hits: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """n_lrf neighbour indices: without replacement, or all hits padded with repeats."""
