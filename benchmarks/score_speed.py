@@ -1,6 +1,7 @@
 """Time the BOP19 scorer on a large synthetic results file (run by hand).
 
     .venv/bin/python benchmarks/score_speed.py [--dataset-root DIR] [--workers 1 2] [--repeat 3]
+        [--versus-pipeline LABEL=DIR ...] [--versus LABEL=COMMAND ...] [--versus-repeat 5]
 
 What it builds. On the ``bench`` synthetic dataset (84 images, 540 targets, 561 valid
 GT instances; default: the one in ``cache/synthbench/synth/*/dataset/synthbench``, else
@@ -38,6 +39,22 @@ includes starting the workers): loading depth images and models, VSD rendering
 number of model renders. Writes the tables to ``benchmarks/results/score_speed.md``.
 The machine has 2 cores shared with other work: compare the ratios measured in one
 run, not absolute numbers across runs.
+
+Side by side (``--versus*``). Other scorers run on the same results file, each as a
+fresh process timed from start to exit, interleaved with ours (``freeze score`` run the
+same way: ours, other, ours, other, ... ``--versus-repeat`` times) so that both see the
+same machine load. Reported: median wall times, the median of the paired ratios
+other / ours, the AR each wrote, and, for scorers writing our ``errors.parquet``, the
+largest per-estimate difference from ours.
+
+- ``--versus-pipeline LABEL=DIR``: another version of this project's scorer, DIR holding
+  its ``pipeline`` package (e.g. a copy made before a change), run as ``freeze score``.
+- ``--versus LABEL=COMMAND``: any command, e.g. the reference BOP toolkit's
+  ``scripts/eval_bop19_pose.py``. ``{python} {csv} {csv_name} {csv_dir} {root}
+  {root_parent} {targets} {out} {workers}`` are replaced (paths shell-quoted). Its AR
+  is read from ``{out}/**/scores_bop19.json`` (the toolkit's) or ``{out}/scores.json``
+  (ours). The toolkit scores only datasets it knows by name: link the bench dataset
+  under such a name and register its objects in the toolkit's ``dataset_params.py``.
 """
 
 from __future__ import annotations
@@ -45,8 +62,12 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import os
 import platform
+import shlex
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -166,6 +187,135 @@ TIMING_KEYS = [
 ]
 
 
+# ---------------------------------------------------------------------------- side by side
+
+#: ``freeze score`` on the bench file, as a command template (fields: see ``--versus``).
+OURS_COMMAND = (
+    "{python} -c 'import sys; from pipeline.cli import app; sys.argv[0] = \"freeze\"; app()' "
+    "score {csv} --dataset-root {root} --out {out} --workers {workers} {targets_option}"
+)
+
+
+def run_timed(cmd: str, env: dict[str, str], log: Path) -> float:
+    """Wall seconds of one shell command from start to exit (output in ``log``, working
+    folder that of ``log``, so that ``python -c`` imports the ``pipeline`` of PYTHONPATH,
+    not one of the working folder); raises ``CalledProcessError`` when it fails."""
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        subprocess.run(cmd, shell=True, env=env, stdout=f, stderr=subprocess.STDOUT, check=True, cwd=log.parent)
+    return time.perf_counter() - t0
+
+
+def read_ar(out: Path) -> float | None:
+    """The AR a scorer wrote under ``out``: ours (scores.json) or the BOP toolkit's
+    (scores_bop19.json); None when neither is there."""
+    if (out / "scores.json").is_file():
+        return json.loads((out / "scores.json").read_text())["summary"]["AR"]
+    for f in sorted(out.rglob("scores_bop19.json")):
+        return float(json.loads(f.read_text())["bop19_average_recall"])
+    return None
+
+
+def error_differences(ours: Path, other: Path) -> dict[str, float] | None:
+    """Largest |other - ours| per error column of two ``errors.parquet`` (inf where one
+    is infinite and the other not); None when one is missing or their rows differ."""
+    import pandas as pd
+
+    if not (ours / "errors.parquet").is_file() or not (other / "errors.parquet").is_file():
+        return None
+    a, b = pd.read_parquet(ours / "errors.parquet"), pd.read_parquet(other / "errors.parquet")
+    key = ["scene_id", "im_id", "obj_id", "est_id", "gt_id"]
+    if len(a) != len(b) or not (a[key].to_numpy() == b[key].to_numpy()).all():
+        return None
+    diffs = {}
+    for c in [c for c in a.columns if c in ("mssd", "mspd") or c.startswith("vsd_tau")]:
+        x, y = a[c].to_numpy(np.float64), b[c].to_numpy(np.float64)
+        if (np.isfinite(x) != np.isfinite(y)).any():
+            diffs[c] = float("inf")
+            continue
+        fin = np.isfinite(x)
+        diffs[c] = float(np.abs(x[fin] - y[fin]).max(initial=0.0))
+    return diffs
+
+
+def side_by_side(
+    systems: dict[str, tuple[str, dict[str, str]]], fields: dict[str, str], work: Path, repeat: int
+) -> dict[str, dict]:
+    """Run every (command template, environment) of ``systems`` ``repeat`` times,
+    interleaved (first, second, ..., first, second, ...).
+
+    Returns per label: ``walls`` (s), ``ratios`` (wall / the first system's wall of
+    the same round), ``AR`` (from its output) and ``out`` (its output folder).
+    """
+    labels = list(systems)
+    res: dict[str, dict] = {k: {"walls": [], "ratios": [], "AR": None, "out": work / f"versus-{k}"} for k in labels}
+    for rep in range(repeat):
+        for label in labels:
+            cmd, env = systems[label]
+            out = res[label]["out"]
+            shutil.rmtree(out, ignore_errors=True)
+            out.mkdir(parents=True)
+            wall = run_timed(cmd.format(**fields, out=shlex.quote(str(out))), env, work / f"versus-{label}.log")
+            res[label]["walls"].append(wall)
+            res[label]["AR"] = read_ar(out)
+            print(f"[{rep + 1}/{repeat}] {label}: {wall:.1f} s  AR={res[label]['AR']}", flush=True)
+        for label in labels:
+            res[label]["ratios"].append(res[label]["walls"][-1] / res[labels[0]]["walls"][-1])
+    return res
+
+
+def versus_section(args: argparse.Namespace, root: Path, csv: Path, targets: Path | None, work: Path) -> list[str]:
+    """Markdown lines of the side-by-side comparison (runs it)."""
+    fields = {
+        "python": shlex.quote(sys.executable),
+        "csv": shlex.quote(str(csv)),
+        "csv_name": shlex.quote(csv.name),
+        "csv_dir": shlex.quote(str(csv.parent)),
+        "root": shlex.quote(str(root)),
+        "root_parent": shlex.quote(str(root.parent)),
+        "targets": shlex.quote(str(targets if targets is not None else root / "test_targets_bop19.json")),
+        "targets_option": f"--targets {shlex.quote(str(targets))}" if targets is not None else "",
+        "workers": str(args.versus_workers),
+    }
+
+    def env_with_path(path: Path) -> dict[str, str]:
+        env = dict(os.environ)
+        env["PYTHONPATH"] = str(path)
+        return env
+
+    systems: dict[str, tuple[str, dict[str, str]]] = {"ours": (OURS_COMMAND, env_with_path(ROOT))}
+    for spec in args.versus_pipeline:
+        label, path = spec.split("=", 1)
+        systems[label] = (OURS_COMMAND, env_with_path(Path(path).resolve()))
+    for spec in args.versus:
+        label, cmd = spec.split("=", 1)
+        systems[label] = (cmd, dict(os.environ))
+    res = side_by_side(systems, fields, work, args.versus_repeat)
+    lines = [
+        "",
+        f"## Side by side: each scorer as a fresh process (imports included), targets `{args.versus_targets}`, "
+        f"{args.versus_workers} worker(s), alternated {args.versus_repeat} times",
+        "",
+        "| scorer | median wall s | min wall s | this / ours (median of paired ratios) | AR | max per-estimate |error - ours| |",
+        "|---|---|---|---|---|---|",
+    ]
+    for label, r in res.items():
+        diffs = error_differences(res["ours"]["out"], r["out"]) if label != "ours" else None
+        diff_text = "-" if diffs is None else ", ".join(f"{k} {v:.2g}" for k, v in diffs.items() if k in ("mssd", "mspd"))
+        if diffs is not None:
+            diff_text += f", VSD {max(v for k, v in diffs.items() if k.startswith('vsd')):.2g}"
+        ar = "-" if r["AR"] is None else repr(r["AR"])
+        lines.append(
+            f"| {label} | {statistics.median(r['walls']):.2f} | {min(r['walls']):.2f} "
+            f"| {statistics.median(r['ratios']):.2f}x | {ar} | {diff_text} |"
+        )
+    lines += ["", "Commands (fields as in `score_speed.py --help`):", ""]
+    lines += [f"- {label}: `{systems[label][0]}`" + (f" with PYTHONPATH={systems[label][1].get('PYTHONPATH')}"
+                                                       if systems[label][0] == OURS_COMMAND else "")
+              for label in systems]
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataset-root", type=Path, default=None)
@@ -176,6 +326,14 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None, help="keep the results file and outputs here")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "score_speed.md")
     ap.add_argument("--label", default="", help="free text put in the Markdown heading")
+    ap.add_argument("--versus-pipeline", action="append", default=[], metavar="LABEL=DIR",
+                    help="another version of the scorer (DIR holds its pipeline package), run side by side")
+    ap.add_argument("--versus", action="append", default=[], metavar="LABEL=COMMAND",
+                    help="a command (e.g. the BOP toolkit's eval_bop19_pose.py) run side by side")
+    ap.add_argument("--versus-repeat", type=int, default=5)
+    ap.add_argument("--versus-targets", default="official", choices=["official", "all"])
+    ap.add_argument("--versus-workers", type=int, default=1)
+    ap.add_argument("--skip-in-process", action="store_true", help="only the side-by-side runs")
     args = ap.parse_args()
 
     import warnings
@@ -199,7 +357,7 @@ def main() -> None:
     write_all_targets(root, counts, targets["all"])
     print(f"{len(rows)} estimates ({sum(counts.values())} for targets) -> {csv}")
 
-    configs = [(tg, w) for tg in args.targets for w in args.workers]
+    configs = [] if args.skip_in_process else [(tg, w) for tg in args.targets for w in args.workers]
     walls: dict[tuple[str, int], list[float]] = {c: [] for c in configs}
     splits: dict[tuple[str, int], list[dict]] = {c: [] for c in configs}
     summaries: dict[tuple[str, int], dict] = {}
@@ -217,22 +375,27 @@ def main() -> None:
             print(f"[{rep + 1}/{args.repeat}] targets={tg} workers={w}: {wall:.1f} s  AR={s.summary['AR']:.4f}", flush=True)
 
     # The same errors whatever the worker count.
-    for tg in args.targets:
+    for tg in args.targets if configs else []:
         ars = {summaries[(tg, w)]["AR"] for w in args.workers}
         assert len(ars) == 1, f"AR differs between worker counts: {ars}"
 
     lines = [
         f"# Scorer speed{(' — ' + args.label) if args.label else ''}",
         "",
-        f"`benchmarks/score_speed.py --repeat {args.repeat}` on `{root.name}` ({platform.node()}, "
-        f"{time.strftime('%Y-%m-%d %H:%M')}); medians of {args.repeat} alternating runs.",
+        f"`benchmarks/score_speed.py {' '.join(shlex.quote(a) for a in sys.argv[1:])}` on `{root.name}` "
+        f"({platform.node()}, {time.strftime('%Y-%m-%d %H:%M')}); medians of {args.repeat} alternating runs.",
         "",
         f"Results file: {len(rows)} estimates, {sum(counts.values())} of them for targets.",
-        "",
-        "| targets | workers | scored est. | wall s | est./s (file) | scored est./s | speed-up | AR |",
-        "|---|---|---|---|---|---|---|---|",
     ]
-    for tg in args.targets:
+    if configs:
+        lines += [
+            "",
+            "In process (`score_results_file`, imports excluded):",
+            "",
+            "| targets | workers | scored est. | wall s | est./s (file) | scored est./s | speed-up | AR |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+    for tg in args.targets if configs else []:
         base = statistics.median(walls[(tg, args.workers[0])])
         for w in args.workers:
             med = statistics.median(walls[(tg, w)])
@@ -256,6 +419,8 @@ def main() -> None:
         if "n_renders" in extra:
             lines += ["", "Renders per run: " + ", ".join(
                 f"{tg}: {summaries[(tg, args.workers[0])]['timing'].get('n_renders')}" for tg in args.targets)]
+    if args.versus_pipeline or args.versus:
+        lines += versus_section(args, root, csv, targets[args.versus_targets], work)
     text = "\n".join(lines) + "\n"
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

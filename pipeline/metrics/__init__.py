@@ -17,10 +17,23 @@ from .evaluate import (
 from .matching import greedy_match, valid_gt_mask
 from .pose_errors import mspd, mssd, project
 from .bop_symmetries import model_symmetries, symmetry_transformations
-from .vsd import VSD_TAUS, Crop, depth_to_distance, sphere_projections_overlap, vsd, vsd_crops, vsd_from_distances
+from .vsd import (
+    VSD_TAUS,
+    Crop,
+    DistanceCrop,
+    depth_to_distance,
+    distance_crop,
+    ray_lengths,
+    sphere_projections_overlap,
+    vsd,
+    vsd_crops,
+    vsd_distance_crops,
+    vsd_from_distances,
+)
 
 __all__ = [
     "Crop",
+    "DistanceCrop",
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
     "NotARotationError",
@@ -31,6 +44,7 @@ __all__ = [
     "bop_vsd_delta",
     "check_rotations",
     "depth_to_distance",
+    "distance_crop",
     "evaluate",
     "greedy_match",
     "load_scores",
@@ -38,6 +52,7 @@ __all__ = [
     "mspd",
     "mssd",
     "project",
+    "ray_lengths",
     "score_results_file",
     "sphere_projections_overlap",
     "symmetry_transformations",
@@ -45,5 +60,6 @@ __all__ = [
     "vsd",
     "vsd_column",
     "vsd_crops",
+    "vsd_distance_crops",
     "vsd_from_distances",
 ]

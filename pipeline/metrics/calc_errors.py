@@ -22,7 +22,8 @@ from pipeline.bop.dataset import parse_models_info
 
 from .pose_errors import hull_indices, mspd, mssd, probe_indices
 from .bop_symmetries import DEFAULT_MAX_SYM_DISC_STEP, model_symmetries
-from .vsd import VSD_TAUS, Crop, sphere_projections_overlap, vsd_crops
+from .depth_render import DepthAtlasRenderer, DepthRequest
+from .vsd import VSD_TAUS, Crop, distance_crop, ray_lengths, sphere_projections_overlap, vsd_distance_crops
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,10 @@ class ErrorParams:
     #: OpenGL's pixel centres at OpenCV coordinates (x + 0.5, y + 0.5); sampling there
     #: too reproduces its silhouettes and hence its VSD values.
     render_offset: float = 0.5
+    #: Render the model depths of an image in one batch (``depth_render``); False: one
+    #: pyrender render each (``Renderer.render_depth_crop``, the scorer before issue 15),
+    #: kept to compare the two.
+    batch_render: bool = True
 
 
 @dataclass
@@ -80,6 +85,8 @@ class ErrorCalculator:
         self._models: dict[int, _Model] = {}
         self._infos: dict[int, ModelInfo] | None = None
         self._renderers: dict[tuple[int, int], Any] = {}
+        self._atlas: DepthAtlasRenderer | None = None
+        self._ray_cache: dict[tuple[bytes, int, int], np.ndarray] = {}
         self._taus = np.asarray(params.vsd_taus, dtype=np.float64)
         #: Seconds per part (load: depth images and models; vsd_render; vsd_compare;
         #: mssd; mspd) and ``n_renders``, accumulated over :meth:`image_errors` calls.
@@ -89,6 +96,9 @@ class ErrorCalculator:
         for r in self._renderers.values():
             r.close()
         self._renderers.clear()
+        if self._atlas is not None:
+            self._atlas.close()
+            self._atlas = None
 
     def model(self, obj_id: int) -> _Model:
         if obj_id not in self._models:
@@ -128,28 +138,35 @@ class ErrorCalculator:
         centres are more than a diameter apart, as in the toolkit), mspd (px) and
         ``vsd`` ((T,) float64 per tau, or None when VSD is not computed).
 
-        Model depths are rendered only in the image region where the model projects
-        (``Renderer.render_depth_crop``), each GT instance once per image and each
-        estimate once. Time spent per part accumulates in :attr:`timing`.
+        MSSD and MSPD come first; then every model depth that a VSD needs is rendered,
+        once per estimate and once per GT instance, only in the image region where the
+        model projects, all of them in one batch (:meth:`_render_depths`); then VSD of
+        each pair. Time spent per part accumulates in :attr:`timing`.
         """
-        p = self.params
+        rows, vsd_pairs = self._pose_errors(job)
+        if vsd_pairs:
+            self._vsd_errors(job, rows, vsd_pairs)
+        return rows
+
+    def _pose_errors(self, job: ImageJob) -> tuple[list[dict], list[tuple[int, int, int]]]:
+        """The rows of the image with MSSD and MSPD, and the pairs whose VSD needs
+        renders as (row index, estimate index in ``job.ests``, gt_id).
+
+        VSD is 1 for every tau without rendering when the two poses' bounding spheres
+        cannot overlap in the image (the toolkit's shortcut), None without VSD.
+        """
         tm = self.timing
         clock = _time.perf_counter
         K = np.asarray(job.K, dtype=np.float64)
-        K_render = K.copy()
-        K_render[0, 2] -= p.render_offset
-        K_render[1, 2] -= p.render_offset
-        depth_test = None
-        gt_depth: dict[int, Crop | None] = {}
-        rows = []
-        for est_id, obj_id, score, R_e, t_e in job.ests:
+        rows: list[dict] = []
+        vsd_pairs: list[tuple[int, int, int]] = []
+        for e, (est_id, obj_id, score, R_e, t_e) in enumerate(job.ests):
             gts = [g for g in job.gts if g[1] == obj_id]
             if not gts:
                 continue
             t0 = clock()
             m = self.model(obj_id)
             tm["load"] += clock() - t0
-            est_depth: Crop | None | bool = False  # False: not rendered yet
             for gt_id, _, R_g, t_g in gts:
                 t0 = clock()
                 if np.linalg.norm(t_e - t_g) < m.diameter:
@@ -163,28 +180,11 @@ class ErrorCalculator:
                 tm["mssd"] += t1 - t0
                 tm["mspd"] += t2 - t1
                 e_vsd = None
-                if p.compute_vsd:
-                    if not sphere_projections_overlap(0.5 * m.diameter, t_e, t_g):
-                        e_vsd = np.ones(len(self._taus))
+                if self.params.compute_vsd:
+                    if sphere_projections_overlap(0.5 * m.diameter, t_e, t_g):
+                        vsd_pairs.append((len(rows), e, gt_id))
                     else:
-                        if depth_test is None:
-                            t0 = clock()
-                            depth_test = self.dataset.load_depth(job.scene_id, job.im_id)
-                            tm["load"] += clock() - t0
-                            if depth_test.shape != (job.height, job.width):
-                                raise ValueError(
-                                    f"{self.dataset.depth_path(job.scene_id, job.im_id)}: depth is "
-                                    f"{depth_test.shape[1]}x{depth_test.shape[0]}, camera says {job.width}x{job.height}"
-                                )
-                        t0 = clock()
-                        if est_depth is False:
-                            est_depth = self._render(job, obj_id, R_e, t_e, K_render)
-                        if gt_id not in gt_depth:
-                            gt_depth[gt_id] = self._render(job, obj_id, R_g, t_g, K_render)
-                        t1 = clock()
-                        e_vsd = vsd_crops(depth_test, est_depth, gt_depth[gt_id], K, p.vsd_delta, m.diameter, self._taus)
-                        tm["vsd_render"] += t1 - t0
-                        tm["vsd_compare"] += clock() - t1
+                        e_vsd = np.ones(len(self._taus))
                 rows.append(
                     {
                         "scene_id": job.scene_id,
@@ -198,10 +198,82 @@ class ErrorCalculator:
                         "vsd": e_vsd,
                     }
                 )
-        return rows
+        return rows, vsd_pairs
+
+    def _vsd_errors(self, job: ImageJob, rows: list[dict], pairs: list[tuple[int, int, int]]) -> None:
+        """Fill ``rows[i]["vsd"]`` for the (row index, estimate index, gt_id) ``pairs``."""
+        p = self.params
+        tm = self.timing
+        clock = _time.perf_counter
+        t0 = clock()
+        depth_test = self.dataset.load_depth(job.scene_id, job.im_id)
+        tm["load"] += clock() - t0
+        if depth_test.shape != (job.height, job.width):
+            raise ValueError(
+                f"{self.dataset.depth_path(job.scene_id, job.im_id)}: depth is "
+                f"{depth_test.shape[1]}x{depth_test.shape[0]}, camera says {job.width}x{job.height}"
+            )
+        # The renders, each once: ("est", index in job.ests) or ("gt", gt_id).
+        gt_pose = {g[0]: g for g in job.gts}
+        poses: dict[tuple[str, int], tuple[int, np.ndarray, np.ndarray]] = {}
+        for _, e, gt_id in pairs:
+            _, obj_id, _, R_e, t_e = job.ests[e]
+            poses.setdefault(("est", e), (obj_id, R_e, t_e))
+            _, _, R_g, t_g = gt_pose[gt_id]
+            poses.setdefault(("gt", gt_id), (obj_id, R_g, t_g))
+        t0 = clock()
+        crops = self._render_depths(job, list(poses.values()))
+        t1 = clock()
+        # Distances from the camera centre, once per image and once per render (VSD
+        # compares distances, not depths).
+        rays = self._rays(job)
+        dist_test = depth_test.astype(np.float64) * rays
+        dists = {k: None if c is None else distance_crop(c, rays) for k, c in zip(poses, crops)}
+        for i, e, gt_id in pairs:
+            m = self.model(job.ests[e][1])
+            rows[i]["vsd"] = vsd_distance_crops(
+                dist_test, dists[("est", e)], dists[("gt", gt_id)], p.vsd_delta, m.diameter, self._taus
+            )
+        tm["vsd_render"] += t1 - t0
+        tm["vsd_compare"] += clock() - t1
+
+    def _rays(self, job: ImageJob) -> np.ndarray:
+        """:func:`ray_lengths` (H, W) of the job's camera, cached per intrinsics."""
+        key = (np.asarray(job.K, dtype=np.float64).tobytes(), job.width, job.height)
+        if key not in self._ray_cache:
+            if len(self._ray_cache) > 8:
+                self._ray_cache.clear()
+            self._ray_cache[key] = ray_lengths(job.K, job.width, job.height)
+        return self._ray_cache[key]
+
+    def _render_depths(self, job: ImageJob, poses: list[tuple[int, np.ndarray, np.ndarray]]) -> list[Crop | None]:
+        """Model depth, as a :class:`Crop` of the image where the model projects, for
+        each (obj_id, R, t) of ``poses``; None when the model is outside the image."""
+        K_render = np.asarray(job.K, dtype=np.float64).copy()
+        K_render[0, 2] -= self.params.render_offset
+        K_render[1, 2] -= self.params.render_offset
+        if not self.params.batch_render:
+            return [self._render(job, obj_id, R, t, K_render) for obj_id, R, t in poses]
+        ren = self._atlas_renderer(sorted({obj_id for obj_id, _, _ in poses}))
+        boxes = [ren.box(obj_id, R, t, K_render, job.width, job.height) for obj_id, R, t in poses]
+        requests = [DepthRequest(obj_id, R, t, K_render, box) for (obj_id, R, t), box in zip(poses, boxes) if box is not None]
+        depths = iter(ren.render(requests))
+        self.timing["n_renders"] += len(requests)
+        return [None if box is None else Crop(next(depths), box[0], box[1]) for box in boxes]
+
+    def _atlas_renderer(self, obj_ids: list[int]) -> DepthAtlasRenderer:
+        """The batched depth renderer, with the ``models_eval`` meshes of ``obj_ids``."""
+        if self._atlas is None:
+            self._atlas = DepthAtlasRenderer()
+        for obj_id in obj_ids:
+            if not self._atlas.has_mesh(obj_id):
+                m = self.model(obj_id)
+                self._atlas.add_mesh(obj_id, m.pts, m.faces, m.hull)
+        return self._atlas
 
     def _render(self, job: ImageJob, obj_id: int, R: np.ndarray, t: np.ndarray, K_render: np.ndarray) -> Crop | None:
-        """Depth of the model in the part of the image where it projects; None if outside."""
+        """Depth of the model in the part of the image where it projects (one pyrender
+        render: the path before the batched renderer); None if outside."""
         ren = self._renderer(job.width, job.height, obj_id)
         box = ren.object_box(obj_id, R, t, K_render)
         if box is None:

@@ -182,14 +182,34 @@ def _check_results(results: pd.DataFrame, source: str | Path = "results") -> pd.
     df["score"] = df["score"].astype(np.float64)
     df["time"] = df["time"].astype(np.float64)
     for name, n in (("R", 9), ("t", 3)):
-        for i, v in enumerate(df[name]):
-            a = np.asarray(v, dtype=np.float64)
-            if a.size != n or not np.all(np.isfinite(a)):
-                raise ValueError(f"{source}: row {i}, field '{name}': expected {n} finite values, got {v!r}")
+        bad = _first_bad_row(df[name], n)
+        if bad is not None:
+            v = df[name].iloc[bad]
+            raise ValueError(f"{source}: row {bad}, field '{name}': expected {n} finite values, got {v!r}")
     if not np.all(np.isfinite(df["score"])):
         raise ValueError(f"{source}: row {int(np.flatnonzero(~np.isfinite(df['score']))[0])}, field 'score': not finite")
     check_rotations(df, source)
     return df
+
+
+def _first_bad_row(values: pd.Series, n: int) -> int | None:
+    """Position of the first row of a column of arrays that is not ``n`` finite values;
+    None when all are. One stacked check when the rows have one shape (the usual case),
+    row by row otherwise."""
+    if not len(values):  # a results file without estimates has nothing wrong in it
+        return None
+    try:
+        a = np.stack([np.asarray(v, dtype=np.float64) for v in values])
+    except ValueError:  # rows of different shapes
+        a = None
+    if a is not None and a.reshape(len(values), -1).shape[1] == n:
+        ok = np.isfinite(a.reshape(len(values), n)).all(axis=1)
+        return None if ok.all() else int(np.flatnonzero(~ok)[0])
+    for i, v in enumerate(values):
+        a = np.asarray(v, dtype=np.float64)
+        if a.size != n or not np.all(np.isfinite(a)):
+            return i
+    return None
 
 
 def mean_time_per_image(df: pd.DataFrame) -> float:
@@ -253,9 +273,26 @@ def _select_estimates(df: pd.DataFrame, inst_counts: dict[tuple[int, int, int], 
 
 
 def _image_jobs(dataset: BopDataset, ests: pd.DataFrame) -> list[ImageJob]:
+    """One :class:`ImageJob` per image of the selected estimates ``ests`` (with est_id),
+    by increasing (scene_id, im_id), the estimates of an image in their order in ``ests``."""
+    if len(ests) == 0:
+        return []
+    scene = ests["scene_id"].to_numpy(np.int64)
+    image = ests["im_id"].to_numpy(np.int64)
+    # Plain Python values and stacked arrays once, instead of per row of every image.
+    est_ids = ests["est_id"].to_numpy(np.int64).tolist()
+    obj_ids = ests["obj_id"].to_numpy(np.int64).tolist()
+    scores = ests["score"].to_numpy(np.float64).tolist()
+    Rs = np.stack([np.asarray(v, dtype=np.float64).reshape(3, 3) for v in ests["R"]])
+    ts = np.stack([np.asarray(v, dtype=np.float64).reshape(3) for v in ests["t"]])
+    order = np.lexsort((image, scene))  # stable: rows of an image keep their order
+    new_image = np.ones(len(order), dtype=bool)
+    new_image[1:] = (scene[order][1:] != scene[order][:-1]) | (image[order][1:] != image[order][:-1])
+    bounds = np.append(np.flatnonzero(new_image), len(order))
     jobs = []
-    for (scene_id, im_id), grp in ests.groupby(["scene_id", "im_id"], sort=True):
-        scene_id, im_id = int(scene_id), int(im_id)
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        rows = order[a:b].tolist()
+        scene_id, im_id = int(scene[rows[0]]), int(image[rows[0]])
         cams = dataset.scene_camera(scene_id)
         gts_all = dataset.scene_gt(scene_id)
         if im_id not in cams or im_id not in gts_all:
@@ -264,12 +301,9 @@ def _image_jobs(dataset: BopDataset, ests: pd.DataFrame) -> list[ImageJob]:
                 "scene_camera.json / scene_gt.json"
             )
         cam = cams[im_id]
-        obj_ids = set(grp["obj_id"].tolist())
-        gts = [(g, p.obj_id, p.R, p.t) for g, p in enumerate(gts_all[im_id]) if p.obj_id in obj_ids]
-        ests_list = [
-            (int(r.est_id), int(r.obj_id), float(r.score), np.asarray(r.R, float).reshape(3, 3), np.asarray(r.t, float).reshape(3))
-            for r in grp.itertuples(index=False)
-        ]
+        objs = {obj_ids[i] for i in rows}
+        gts = [(g, p.obj_id, p.R, p.t) for g, p in enumerate(gts_all[im_id]) if p.obj_id in objs]
+        ests_list = [(est_ids[i], obj_ids[i], scores[i], Rs[i], ts[i]) for i in rows]
         jobs.append(ImageJob(scene_id, im_id, cam.K, int(cam.width), int(cam.height), gts, ests_list))
     return jobs
 

@@ -17,18 +17,25 @@ import numpy as np
 VSD_TAUS: np.ndarray = np.arange(0.05, 0.51, 0.05)
 
 
+def ray_lengths(K: np.ndarray, width: int, height: int, x0: int = 0, y0: int = 0) -> np.ndarray:
+    """(height, width) float64: distance from the camera centre per mm of depth, for the
+    pixels of the image region starting at ``(x0, y0)`` (pixel centres at integer
+    coordinates, OpenCV). A crop of the full image's array equals the array of the crop,
+    bit for bit (each element is computed from its own coordinates)."""
+    K = np.asarray(K, dtype=np.float64)
+    xs = (np.arange(x0, x0 + width) - K[0, 2]) / K[0, 0]
+    ys = (np.arange(y0, y0 + height) - K[1, 2]) / K[1, 1]
+    return np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+
+
 def depth_to_distance(depth: np.ndarray, K: np.ndarray, x0: int = 0, y0: int = 0) -> np.ndarray:
     """Distance image (h, w) float64 mm from a depth image (h, w) mm.
 
     ``(x0, y0)`` is the image position of the top-left pixel when ``depth`` is a crop;
     pixel centres are at integer coordinates (OpenCV).
     """
-    K = np.asarray(K, dtype=np.float64)
     h, w = depth.shape
-    xs = (np.arange(x0, x0 + w) - K[0, 2]) / K[0, 0]
-    ys = (np.arange(y0, y0 + h) - K[1, 2]) / K[1, 1]
-    ray = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
-    return depth.astype(np.float64) * ray
+    return depth.astype(np.float64) * ray_lengths(K, w, h, x0, y0)
 
 
 def _visible(d_test: np.ndarray, d_model: np.ndarray, delta: float) -> np.ndarray:
@@ -170,3 +177,60 @@ def sphere_projections_overlap(radius: float, t1: np.ndarray, t2: np.ndarray) ->
         return False
     dist = np.linalg.norm(t1[:2] / t1[2] - t2[:2] / t2[2])
     return bool(dist < radius * (1.0 / t1[2] + 1.0 / t2[2]))
+
+
+class DistanceCrop(NamedTuple):
+    """A model's distance image (h, w) float64 mm from the camera centre (0: no surface),
+    covering image pixels [y0, y0+h) x [x0, x0+w) (inside the image)."""
+
+    dist: np.ndarray
+    x0: int
+    y0: int
+
+
+def distance_crop(crop: Crop, rays: np.ndarray) -> DistanceCrop:
+    """The :class:`DistanceCrop` of a depth :class:`Crop`, clipped to the image.
+
+    rays: :func:`ray_lengths` of the whole image (H, W). The distances equal
+    :func:`depth_to_distance` of the crop, bit for bit.
+    """
+    H, W = rays.shape
+    x0, y0 = max(crop.x0, 0), max(crop.y0, 0)
+    h, w = crop.depth.shape
+    x1, y1 = min(crop.x0 + w, W), min(crop.y0 + h, H)
+    if x1 <= x0 or y1 <= y0:
+        return DistanceCrop(np.zeros((0, 0)), x0, y0)
+    depth = crop.depth[y0 - crop.y0 : y1 - crop.y0, x0 - crop.x0 : x1 - crop.x0]
+    return DistanceCrop(depth.astype(np.float64) * rays[y0:y1, x0:x1], x0, y0)
+
+
+def vsd_distance_crops(
+    dist_test: np.ndarray,
+    est: DistanceCrop | None,
+    gt: DistanceCrop | None,
+    delta: float,
+    diameter: float,
+    taus: np.ndarray = VSD_TAUS,
+) -> np.ndarray:
+    """VSD errors (T,), as :func:`vsd_crops`, from distance images: the test image's
+    (H, W) float64 mm and the two renders' :class:`DistanceCrop` (None: no pixel in the
+    image). Computing the distances once per image and once per render, instead of per
+    (estimate, GT) pair, gives the same values."""
+    crops = [c for c in (est, gt) if c is not None and c.dist.size]
+    if not crops:
+        return np.ones(len(taus))
+    x0 = min(c.x0 for c in crops)
+    y0 = min(c.y0 for c in crops)
+    x1 = max(c.x0 + c.dist.shape[1] for c in crops)
+    y1 = max(c.y0 + c.dist.shape[0] for c in crops)
+
+    def paste(c: DistanceCrop | None) -> np.ndarray:
+        if c is not None and c.dist.shape == (y1 - y0, x1 - x0):
+            return c.dist  # the union box is this crop's own box
+        out = np.zeros((y1 - y0, x1 - x0))
+        if c is not None and c.dist.size:
+            h, w = c.dist.shape
+            out[c.y0 - y0 : c.y0 - y0 + h, c.x0 - x0 : c.x0 - x0 + w] = c.dist
+        return out
+
+    return vsd_from_distances(dist_test[y0:y1, x0:x1], paste(est), paste(gt), delta, taus, diameter)
