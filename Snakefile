@@ -12,6 +12,8 @@ min_version("9.0")
 from pipeline.cli_common import USER_ERRORS
 from pipeline.config import load_run
 from pipeline.plan import RunPlan
+from pipeline.stage_graph import STAGES
+from pipeline.threads import ENV_VARS
 
 try:
     RUN = load_run(config)      # manifests/runs/default.yaml + --config overrides
@@ -46,9 +48,12 @@ PY = sys.executable
 
 
 def stage_shell(stage):
-    """Shell command of a stage job: the same entry point as `freeze stage`."""
-    return (f"{PY} -m pipeline.cli stage {stage} --dataset {{wildcards.ds}} --item {{params.item}} "
-            f"--expect-sig {{wildcards.sig}} > {{log}} 2>&1")
+    """Shell command of a stage job: the same entry point as `freeze stage`, kept to the
+    rule's threads (the variables for the numeric libraries that read them at start-up;
+    `--threads` for torch and OpenCV, see pipeline/threads.py)."""
+    limits = " ".join(f"{v}={{threads}}" for v in ENV_VARS)
+    return (f"{limits} {PY} -m pipeline.cli stage {stage} --dataset {{wildcards.ds}} --item {{params.item}} "
+            f"--expect-sig {{wildcards.sig}} --threads {{threads}} > {{log}} 2>&1")
 
 
 def stage_plan(wc, stage):
@@ -71,7 +76,7 @@ wildcard_constraints:
     ds="[a-z0-9]+",
     sig="[A-Za-z0-9.+-]+",
     obj="[0-9]{6}",
-    scene="[0-9]{6}",
+    scene="[0-9]{6}(-[0-9]+)?",
 
 
 include: "stages/synth.smk"

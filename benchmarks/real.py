@@ -74,13 +74,14 @@ def single_pose_errors(config: dict[str, str]) -> dict[str, float]:
     dataset's single target, from the refine and score artifacts of ``config``'s plan."""
     from pipeline.config import load_run
     from pipeline.geometry.transforms import rotation_angle_deg
-    from pipeline.plan import RunPlan, scene_item
+    from pipeline.plan import RunPlan
     from pipeline.store import read_table
 
     plan = RunPlan(load_run(config))[config["datasets"]]
     bop = plan.bop()
     (scene_id,) = plan.scene_ids
-    poses = read_table(plan["refine"].item_dir(scene_item(scene_id)) / "poses.parquet")
+    (item,) = plan.items_of_scene(scene_id)
+    poses = read_table(plan["refine"].item_dir(item) / "poses.parquet")
     if len(poses) != 1:
         return {"rot_deg": float("nan"), "trans_mm": float("nan"), "mssd_d": float("nan")}
     p = poses.iloc[0]

@@ -46,17 +46,17 @@ def group_ar(per_object: list[dict], ids: set[int]) -> float:
 def sar_outcomes(plan) -> dict[str, int]:
     """How SAR's changes compare with the ground truth (see the module docstring)."""
     from pipeline.geometry.transforms import rotation_angle_deg
-    from pipeline.plan import scene_item
+    from pipeline.plan import parse_item
     from pipeline.store import read_table
 
     bop = plan.bop()
     infos = bop.models_info()
     out = {"sar_runs": 0, "changed": 0, "fixed": 0, "broke": 0}
-    for scene_id in plan.scene_ids:
-        sar = read_table(plan["refine"].item_dir(scene_item(scene_id)) / "sar.parquet")
+    for item in plan.scene_items:
+        sar = read_table(plan["refine"].item_dir(item) / "sar.parquet")
         if sar.empty:
             continue
-        gt = bop.scene_gt(scene_id)
+        gt = bop.scene_gt(parse_item(item)[1])
         for (im_id, obj_id, _), g in sar.groupby(["im_id", "obj_id", "cand_id"]):
             out["sar_runs"] += 1
             g = g.sort_values("variant")
@@ -87,7 +87,7 @@ def ranking_outcomes(plan) -> tuple[int, dict[str, float]]:
     of the diameter; model_eval vertices, every 7th), how often each ranking puts a
     correct one first: (number of such targets, {ranking: fraction})."""
     from pipeline.metrics.bop_symmetries import model_symmetries
-    from pipeline.plan import scene_item
+    from pipeline.plan import parse_item
     from pipeline.store import read_table
 
     bop = plan.bop()
@@ -101,9 +101,9 @@ def ranking_outcomes(plan) -> tuple[int, dict[str, float]]:
                    for Rs, ts in zip(*syms[o]))
 
     frames = []
-    for scene_id in plan.scene_ids:
-        c = read_table(plan["refine"].item_dir(scene_item(scene_id)) / "candidates.parquet")
-        gt = bop.scene_gt(scene_id)
+    for item in plan.scene_items:
+        c = read_table(plan["refine"].item_dir(item) / "candidates.parquet")
+        gt = bop.scene_gt(parse_item(item)[1])
         c["ok"] = [min(mssd(r.obj_id, np.asarray(r.R).reshape(3, 3), np.asarray(r.t), g.R, g.t)
                        for g in gt[r.im_id] if g.obj_id == r.obj_id) < 0.2 * infos[r.obj_id].diameter
                    for r in c.itertuples()]

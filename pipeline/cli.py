@@ -42,12 +42,18 @@ def stage(
     config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value (without --run-json)"),
     expect_sig: Optional[str] = typer.Option(None, help="fail unless the stage signature equals this"),
     progress: bool = typer.Option(True, help="show progress bars"),
+    threads: Optional[int] = typer.Option(None, min=1, help="CPU threads the job may use (Snakemake passes the "
+                                                            "rule's threads); default: the libraries' own"),
 ) -> None:
     """Run one stage for one item (what each Snakemake job calls)."""
     from pipeline import store
     from pipeline.plan import plan_from_json
     from stages import run_stage
 
+    if threads:
+        from pipeline.threads import use_threads
+
+        use_threads(threads)
     store.mark_job_start()
     plan = plan_from_json(run_json, parse_overrides(config))[dataset]
     sp = plan[name]
@@ -256,7 +262,7 @@ def show_sar(
 ) -> None:
     """Per object, the scene crop, the ICP pose and the SAR pose over it, and every
     symmetric variant's similarity: sar_<dataset>_obj_<id>.png."""
-    from pipeline.plan import plan_from_json, scene_item
+    from pipeline.plan import plan_from_json
     from pipeline.report.sar_figure import draw_sar_figure, sar_cases
     from pipeline.store import read_table
 
@@ -266,8 +272,8 @@ def show_sar(
     ids = obj
     if not ids:
         ids = set()
-        for scene_id in plan.scene_ids:
-            path = plan["refine"].item_dir(scene_item(scene_id)) / "sar.parquet"
+        for item in plan.scene_items:
+            path = plan["refine"].item_dir(item) / "sar.parquet"
             if not path.exists():
                 console.print(f"[red]{path} missing: run the refine stage first (snakemake --cores 2 bop_all)")
                 raise typer.Exit(2)

@@ -126,6 +126,11 @@ class RefineParams(_Strict):
                                     "plus the evidence), the registration evidence (RANSAC inlier ratio x ICP "
                                     "fitness), RANSAC inliers (the paper), the prior's confidence, or the ICP "
                                     "fitness alone ('score' is accepted for 'evidence', its former name)")
+    turns: int = Field(3, ge=0, description="each candidate's best hypothesis is also tried turned by the object's "
+                                            "near-symmetries and by quarter and half turns about the model's axes; "
+                                            "each turn is aligned by a quick ICP, and this many of them, the best "
+                                            "by its fitness, are refined and verified like the other hypotheses "
+                                            "(0: off; needs select_by verification)")
     fine_icp_points: int = Field(2000, ge=0, description="each candidate's chosen pose is refined again by ICP on up "
                                                          "to this many of its depth points (0: off)")
     fine_icp_model_points: int = Field(20000, ge=100, description="model surface samples of the fine ICP")
@@ -308,6 +313,10 @@ class RunManifest(_Strict):
     weights_dir: str | None = Field(
         None, description="folder of encoder weights (default $FREEZE_WEIGHTS or <project>/weights); "
                           "not part of any cache key: the encoders key on weight checksums")
+    images_per_job: int = Field(
+        0, ge=0, description="scene-side jobs (scene_features, register, refine) cover at most this many of a "
+                             "scene's target images each, so that a scene of many images spreads over many jobs "
+                             "(0: one job per scene); the results do not depend on it, nor does any cache key")
     stages: StageParams = StageParams()
 
     @model_validator(mode="after")
@@ -386,7 +395,8 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
 
 
 # Flat keys that `snakemake --config key=value` may set.
-_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method", "priors")
+_OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method", "priors",
+              "images_per_job")
 # Short forms accepted on the command line.
 _ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder", "prior": "priors"}
 

@@ -15,7 +15,9 @@ def symmetry_record(mesh, diameter: float, *, n_points: int, sample_seed: int, t
     (drawn with ``sample_seed``). Returns ``(SymmetrySet, record)`` where ``record`` is
     the ``symmetries.json`` content: ``obj_id``, ``estimated`` and ``declared`` (BOP
     models_info form; ``declared`` a :class:`SymmetrySet`), ``n_discrete``,
-    ``n_continuous``, ``threshold_mm``, ``rejected_best_mm`` and ``seconds``."""
+    ``n_continuous``, ``threshold_mm``, ``rejected_best_mm``, ``near_symmetries``
+    (``[{"T": 16 floats row-major, "score_mm"}]``, the turns refinement tries, see
+    :mod:`pipeline.registration.turns`) and ``seconds``."""
     from pipeline.geometry.sampling import sample_surface
     from pipeline.geometry.symmetry import SymmetryParams, estimate_symmetries
 
@@ -30,6 +32,8 @@ def symmetry_record(mesh, diameter: float, *, n_points: int, sample_seed: int, t
         "n_continuous": len(sym.continuous),
         "threshold_mm": float(details.get("threshold_mm", threshold * diameter)),
         "rejected_best_mm": details.get("rejected_best"),
+        "near_symmetries": [{"T": np.asarray(T, float).reshape(16).tolist(), "score_mm": float(s)}
+                            for T, s in details.get("near", [])],
         "seconds": details.get("seconds"),
     }
     return sym, record
@@ -69,3 +73,17 @@ def read_symmetries(path: Path):
     from pipeline.geometry.symmetry import SymmetrySet
 
     return SymmetrySet.from_dict(json.loads(Path(path).read_text())["estimated"])
+
+
+def read_near_symmetries(path: Path) -> list[np.ndarray]:
+    """The near-symmetries ((4, 4) float64 each, best first) in a ``symmetries.json``
+    written by :func:`symmetry_record`."""
+    import json
+
+    from pipeline.bop.errors import BopFormatError
+
+    record = json.loads(Path(path).read_text())
+    if "near_symmetries" not in record:
+        raise BopFormatError(f"{path}: field 'near_symmetries' is missing (written by an older version; "
+                             "run freeze verify --repair or delete the folder to rebuild it)")
+    return [np.asarray(n["T"], dtype=np.float64).reshape(4, 4) for n in record["near_symmetries"]]

@@ -43,16 +43,28 @@ def obj_item(obj_id: int) -> str:
     return f"obj_{obj_id:06d}"
 
 
-def scene_item(scene_id: int) -> str:
-    return f"scene_{scene_id:06d}"
+def scene_item(scene_id: int, chunk: int | None = None) -> str:
+    """``scene_000002``, or the chunk ``scene_000002-001`` of its images (see
+    :meth:`DatasetPlan.scene_items`)."""
+    return f"scene_{scene_id:06d}" if chunk is None else f"scene_{scene_id:06d}-{chunk:03d}"
 
 
 def parse_item(item: str) -> tuple[str, int | None]:
-    """``obj_000005`` -> ("obj", 5); ``all`` -> ("all", None)."""
+    """``obj_000005`` -> ("obj", 5); ``scene_000002-001`` -> ("scene", 2); ``all`` ->
+    ("all", None)."""
     if "_" in item:
         kind, num = item.split("_", 1)
-        return kind, int(num)
+        return kind, int(num.split("-", 1)[0])
     return item, None
+
+
+def image_chunks(images: list[int], per_job: int) -> list[list[int]]:
+    """A scene's image ids (sorted) cut into consecutive chunks of ``per_job`` (0: one
+    chunk)."""
+    images = sorted(images)
+    if per_job <= 0 or len(images) <= per_job:
+        return [images]
+    return [images[i:i + per_job] for i in range(0, len(images), per_job)]
 
 
 def resolve_prior(base: Path, pattern: str) -> Path:
@@ -126,11 +138,51 @@ class DatasetPlan:
     dataset: cfg.DatasetManifest
     root: Path
     obj_ids: list[int]
-    scene_ids: list[int]
+    scene_images: dict[int, list[int]]
+    """Each target scene's target image ids."""
     stages: dict[str, StagePlan] = field(default_factory=dict)
     dataset_key: str = ""
     models_key: str = ""
     prior_key: str = ""
+
+    @property
+    def scene_ids(self) -> list[int]:
+        return sorted(self.scene_images)
+
+    @property
+    def scene_items(self) -> list[str]:
+        """The items of the scene-side stages: one per scene (``scene_000002``), or, with
+        the run's ``images_per_job``, one per chunk of that many of a scene's images
+        (``scene_000002-000``, ``-001``, ...) when the scene has more. Results do not
+        depend on the chunking: every computation is per candidate or per image, and
+        the seeds are drawn per scene and candidate."""
+        out = []
+        for scene_id in self.scene_ids:
+            chunks = image_chunks(self.scene_images[scene_id], self.run.images_per_job)
+            out += [scene_item(scene_id)] if len(chunks) == 1 else [scene_item(scene_id, k) for k in range(len(chunks))]
+        return out
+
+    def items_of_scene(self, scene_id: int) -> list[str]:
+        """The scene items (:attr:`scene_items`) covering scene ``scene_id``."""
+        return [i for i in self.scene_items if parse_item(i)[1] == scene_id]
+
+    def item_images(self, item: str) -> set[int]:
+        """The image ids a scene item covers."""
+        kind, scene_id = parse_item(item)
+        if kind != "scene" or scene_id not in self.scene_images:
+            raise ValueError(f"dataset '{self.name}' has no scene item '{item}'")
+        chunks = image_chunks(self.scene_images[scene_id], self.run.images_per_job)
+        if "-" not in item:
+            if len(chunks) != 1:
+                raise ValueError(f"dataset '{self.name}': scene {scene_id} is cut into {len(chunks)} chunks of "
+                                 f"{self.run.images_per_job} images (images_per_job); its items are "
+                                 f"{', '.join(self.items_of_scene(scene_id))}, not '{item}'")
+            return set(chunks[0])
+        k = int(item.rsplit("-", 1)[1])
+        if len(chunks) == 1 or k >= len(chunks):
+            raise ValueError(f"dataset '{self.name}' has no scene item '{item}' (with images_per_job "
+                             f"{self.run.images_per_job}: {', '.join(self.items_of_scene(scene_id))})")
+        return set(chunks[k])
 
     @property
     def name(self) -> str:
@@ -154,7 +206,7 @@ class DatasetPlan:
                 if "synth" in self.stages:
                     out.append(self["synth"].manifest("dataset"))
             elif r not in EXTERNAL:
-                out.extend(self[r].manifest(i) for i in upstream_items(r, item, self.obj_ids, self.scene_ids, stage))
+                out.extend(self[r].manifest(i) for i in upstream_items(r, item, self.obj_ids, self.scene_items, stage))
         return out
 
     @property
@@ -219,6 +271,17 @@ class StageIO:
         """The object or scene id of this job's item."""
         return item_id(self.item, self.kind, self.stage)
 
+    def images(self) -> set[int]:
+        """The image ids of this job's scene item (all the scene's target images, or a
+        chunk of them: :meth:`DatasetPlan.scene_items`)."""
+        return self.plan.item_images(self.item)
+
+    def candidate_seed(self, cand_id: int, seed: int = 0) -> int:
+        """The seed of one candidate: from this stage's key, the scene and the candidate,
+        not the item, so that a candidate draws the same numbers however the scene's
+        images are chunked."""
+        return self.seed(f"{scene_item(self.item_id())}/{cand_id}", seed)
+
     def _check(self, what: str) -> None:
         if what not in self.spec.reads_for(self.kind):
             raise UndeclaredRead(f"stage {self.stage} ({self.kind} items) reads '{what}', which its declaration in "
@@ -227,7 +290,7 @@ class StageIO:
     def input_dir(self, stage: str, item: str | None = None) -> Path:
         """The folder of ``stage``'s artifact for ``item`` (default: the one item this job reads of it)."""
         self._check(stage)
-        allowed = upstream_items(stage, self.item, self.plan.obj_ids, self.plan.scene_ids, self.stage)
+        allowed = upstream_items(stage, self.item, self.plan.obj_ids, self.plan.scene_items, self.stage)
         if item is None:
             if len(allowed) != 1:
                 raise ValueError(f"stage {self.stage}: name which item of {stage} to read (it reads {len(allowed)})")
@@ -305,18 +368,29 @@ def _encoder_entry(name: str, kind: str, weights_dir: str | None = None) -> dict
     }
 
 
-def _synthetic_layout(ds: cfg.DatasetManifest) -> tuple[list[int], list[int]]:
+def _synthetic_layout(ds: cfg.DatasetManifest) -> tuple[list[int], dict[int, list[int]]]:
+    """(objects, {scene: image ids}) that the synth stage will generate."""
     from pipeline.synth import preset_layout
+    from pipeline.synth.presets import PRESETS
 
-    return preset_layout(ds.preset, ds.seed)
+    obj_ids, scene_ids = preset_layout(ds.preset, ds.seed)
+    return obj_ids, {s: list(range(PRESETS[ds.preset].images_per_scene)) for s in scene_ids}
 
 
-def _semireal_layout(source: Path) -> tuple[list[int], list[int]]:
-    """(target objects, target scenes) of the real sample a semi-real dataset is built from."""
+def _target_layout(targets) -> tuple[list[int], dict[int, list[int]]]:
+    """(target objects, {target scene: its target image ids}) of BOP targets."""
+    images: dict[int, set[int]] = {}
+    for t in targets:
+        images.setdefault(t.scene_id, set()).add(t.im_id)
+    return sorted({t.obj_id for t in targets}), {s: sorted(images[s]) for s in sorted(images)}
+
+
+def _semireal_layout(source: Path) -> tuple[list[int], dict[int, list[int]]]:
+    """(target objects, {target scene: image ids}) of the real sample a semi-real dataset
+    is built from."""
     from pipeline.bop import BopDataset
 
-    targets = BopDataset(source).targets()
-    return sorted({t.obj_id for t in targets}), sorted({t.scene_id for t in targets})
+    return _target_layout(BopDataset(source).targets())
 
 
 def _tree_sha1(folder: Path) -> str:
@@ -403,16 +477,15 @@ def _bop_layout(root: Path, ds: cfg.DatasetManifest, cache: Path) -> tuple[list[
 
     bop = open_bop(root, ds)
     targets_path = root / ds.targets_file
-    targets = bop.targets(targets_path)
-    obj_ids = sorted({t.obj_id for t in targets})
-    scene_ids = sorted({t.scene_id for t in targets})
+    obj_ids, scene_images = _target_layout(bop.targets(targets_path))
+    scene_ids = sorted(scene_images)
     hashes = FileHashes(cache / DB_NAME)
     models = files_under(bop.model_folder()) + [str(p) for p in [bop.models_info_path()] if p.is_file()]
     scene_files = [p for s in scene_ids for p in files_under(bop.scene_dir(s))]
     extra = [str(p) for p in (bop.camera_path(), targets_path) if p.is_file()] + files_under(root / "models_eval")
     keys = hashes.fingerprints(os.path.abspath(root), {"models": models, "dataset": models + extra + scene_files})
     models_key, dataset_key = keys["models"], keys["dataset"]
-    return obj_ids, scene_ids, dataset_key, models_key, not missing_ground_truth(bop, scene_ids)
+    return obj_ids, scene_images, dataset_key, models_key, not missing_ground_truth(bop, scene_ids)
 
 
 class RunPlan:
@@ -517,14 +590,14 @@ class RunPlan:
         if ds.kind in ("synthetic", "semireal"):
             if ds.kind == "synthetic":
                 synth = self._stage(name, "synth", f"{ds.preset}-seed{ds.seed}", {"preset": ds.preset, "seed": ds.seed}, {})
-                obj_ids, scene_ids = _synthetic_layout(ds)
+                obj_ids, scene_images = _synthetic_layout(ds)
             else:
                 source = cfg.shared_root() / ds.source
                 synth = self._stage(name, "synth", f"semireal-{ds.depth}-{ds.gt_prior}-seed{ds.seed}",
                                     {"builder": "semireal", "source": ds.source, "depth": ds.depth,
                                      "gt_prior": ds.gt_prior, "seed": ds.seed},
                                     {"source": _tree_sha1(source)})
-                obj_ids, scene_ids = _semireal_layout(source)
+                obj_ids, scene_images = _semireal_layout(source)
             stages["synth"] = synth
             root = synth.item_dir("dataset") / name
             dataset_key = models_key = prior_key = synth.key
@@ -532,7 +605,7 @@ class RunPlan:
             if not run.bop_root:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
-            obj_ids, scene_ids, dataset_key, models_key, has_gt = _bop_layout(root, ds, self.cache)
+            obj_ids, scene_images, dataset_key, models_key, has_gt = _bop_layout(root, ds, self.cache)
             if not has_gt:  # score cannot compute AR; ground truth added later must rescore
                 score_extra = {"ground_truth": False}
             prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]
@@ -569,7 +642,7 @@ class RunPlan:
         add("refine", refine_name, {"method": run.method, **rf, **_grey(ds)})
         add("score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump(),
                                **score_extra})
-        return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_ids=scene_ids, stages=stages,
+        return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_images=scene_images, stages=stages,
                            dataset_key=dataset_key, models_key=models_key, prior_key=prior_key)
 
     def to_json(self) -> str:

@@ -83,7 +83,7 @@ def planned_manifests(run_plan, datasets: list[str]) -> list[Path]:
                 continue
             for kind in spec.items:
                 items = {"obj": [f"obj_{o:06d}" for o in plan.obj_ids],
-                         "scene": [f"scene_{s:06d}" for s in plan.scene_ids]}.get(kind, [kind])
+                         "scene": plan.scene_items}.get(kind, [kind])
                 out += [plan[stage].manifest(item) for item in items]
     return out
 

@@ -36,17 +36,18 @@ from pipeline.config import RefineParams, RegisterParams, SceneFeaturesParams
 VERIFICATION_COLUMNS = ["silhouette", "depth_fit", "coverage", "free_space", "verification"]
 """The verification terms of a refined pose and its score
 (:mod:`pipeline.registration.verification`)."""
-CANDIDATE_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "source", "prior_score", "n_inliers",
+CANDIDATE_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "parent", "source", "prior_score", "n_inliers",
                      "inlier_ratio", "R", "t", "fitness", "inlier_rmse", "evidence", *VERIFICATION_COLUMNS,
                      "fine_icp", "time_s"]
 """Columns of refine's ``candidates.parquet``: each candidate's chosen hypothesis, its pose
 after the fine ICP when ``fine_icp`` (before the choice among a target's candidates adds
 selected, rank, note); time_s is the candidate's, over its hypotheses and the fine ICP."""
-HYPOTHESIS_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "source", "prior_score", "n_inliers",
-                      "inlier_ratio", "R", "t", "fitness", "inlier_rmse", "evidence", *VERIFICATION_COLUMNS, "time_s",
-                      "chosen"]
-"""Columns of refine's ``hypotheses.parquet``: every coarse hypothesis after ICP, with its
-verification terms, and whether it is its candidate's pose."""
+HYPOTHESIS_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "parent", "source", "prior_score",
+                      "n_inliers", "inlier_ratio", "R", "t", "fitness", "inlier_rmse", "evidence",
+                      *VERIFICATION_COLUMNS, "time_s", "chosen"]
+"""Columns of refine's ``hypotheses.parquet``: every hypothesis after ICP, with its
+verification terms, and whether it is its candidate's pose. Register's hypotheses have
+parent -1; a turn (source ``turn``) names the hypothesis it turned."""
 POSE_COLUMNS = ["scene_id", "im_id", "obj_id", "cand_id", "hyp", "source", "R", "t", "score", "evidence",
                 "verification", "fitness", "inlier_rmse", "n_inliers", "sar_variant", "sar_reason"]
 """Columns of refine's ``poses.parquet``; ``score`` is the value written to the results CSV."""
@@ -56,6 +57,10 @@ REGISTER_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "prior_score", "st
                     "source_rank", "w_geometric", "w_visual", "signal_geometric", "signal_visual", "modalities_agree",
                     "R", "t", "n_inliers", "inlier_ratio", "fitness", "n_correspondences", "time_s"]
 """Columns of register's ``candidates.parquet``: one row per coarse hypothesis."""
+
+QUICK_ICP_ITERATIONS = 10
+"""Iterations of the quick ICP that ranks the turns of a hypothesis (at the coarsest
+correspondence distance only)."""
 
 Progress = Callable[[], None]
 """Called once per candidate done (a progress bar's ``advance``)."""
@@ -558,7 +563,8 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
                       model_of: Callable[[int], Mapping[str, np.ndarray]], diameters: Mapping[int, float],
                       params: RefineParams, verify: Callable[..., Any] | None = None,
                       fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None,
-                      progress: Progress = _noop) -> tuple[pd.DataFrame, pd.DataFrame, dict[int, float]]:
+                      progress: Progress = _noop, turns: Mapping[int, np.ndarray] | None = None,
+                      ) -> tuple[pd.DataFrame, pd.DataFrame, dict[int, float]]:
     """ICP and verification of every coarse hypothesis (register's rows with status
     ``ok``), and each candidate's best hypothesis.
 
@@ -568,9 +574,19 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     are kept. Each hypothesis gets its evidence
     (:func:`pipeline.registration.selection.registration_evidence`) and verification;
     a candidate's hypotheses are ranked like a target's candidates (``params.select_by``,
-    ties by order) and the first is the candidate's pose. fine: a :class:`FineIcp` (None:
-    off), which refines that pose again on denser points; the fine pose replaces it
-    (``fine_icp`` True) unless its verification score is lower.
+    ties by order) and the first is the candidate's pose.
+
+    turns: obj_id -> (n, 4, 4) model-frame turns (:mod:`pipeline.registration.turns`).
+    With a verifier and ``params.turns`` > 0, the candidate's best hypothesis turned by
+    each is aligned by a quick ICP, and the ``params.turns`` best of those by its
+    fitness are refined and verified like the others: hypotheses with source ``turn``, ``parent`` the
+    hypothesis turned, no RANSAC inliers (so evidence 0: a turn must beat its parent on
+    the depth and silhouette by more than the parent's feature evidence). The choice is
+    then made again over all.
+
+    fine: a :class:`FineIcp` (None: off), which refines the chosen pose again on denser
+    points; the fine pose replaces it (``fine_icp`` True) unless its verification score
+    is lower.
 
     Returns the hypotheses (:data:`HYPOTHESIS_COLUMNS`, ``chosen`` marking each
     candidate's), the candidates (:data:`CANDIDATE_COLUMNS`: the chosen hypothesis'
@@ -579,37 +595,96 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     """
     from pipeline.geometry.icp import refine_icp
     from pipeline.registration.selection import RANK_COLUMNS, registration_evidence
+    from pipeline.registration.ransac import distinct_poses
+    from pipeline.registration.turns import turned
 
-    rows = []
-    image_time: dict[int, float] = {}
-    for c in registered.itertuples(index=False):
-        t0 = time.perf_counter()
-        obj_id = int(c.obj_id)
-        R, t = np.asarray(c.R, float).reshape(3, 3), np.asarray(c.t, float)
-        fitness, rmse = float(c.fitness), float("nan")
-        if params.icp:
-            m = model_of(obj_id)
-            res = refine_icp(m["points"], m["normals"], scene_points(int(c.cand_id)), R, t, diameters[obj_id],
-                             max_corr_dist_frac=params.max_corr_frac, iterations=params.iterations,
-                             point_to_plane=params.point_to_plane)
-            R, t, fitness, rmse = res.R, res.t, float(res.fitness), float(res.inlier_rmse)
-        evidence = registration_evidence(c.inlier_ratio, fitness)
-        terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
-        if verify is not None:
-            v = verify(int(c.im_id), int(c.cand_id), obj_id, R, t, diameters[obj_id], evidence)
-            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
-        dt = time.perf_counter() - t0
-        image_time[int(c.im_id)] = image_time.get(int(c.im_id), 0.0) + dt
-        rows.append({"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id), "obj_id": obj_id,
-                     "hyp": int(c.hyp), "source": str(c.source), "prior_score": float(c.prior_score),
-                     "n_inliers": int(c.n_inliers), "inlier_ratio": float(c.inlier_ratio), "R": _flat(R, 9),
-                     "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms,
-                     "time_s": dt})
-        progress()
-    hyps = pd.DataFrame(rows, columns=HYPOTHESIS_COLUMNS[:-1])
     key = RANK_COLUMNS[params.select_by]
     if key == "verification" and verify is None:
         raise ValueError("refine: select_by 'verification' needs the verifier")
+    image_time: dict[int, float] = {}
+
+    def icp(ident: dict[str, Any], R: np.ndarray, t: np.ndarray, fitness: float, quick: bool = False) -> tuple:
+        """The hypothesis' pose and fit after ICP: (R, t, fitness, inlier_rmse mm);
+        ``quick``: only the coarsest correspondence distance, :data:`QUICK_ICP_ITERATIONS`
+        iterations."""
+        if not params.icp:
+            return R, t, fitness, float("nan")
+        m = model_of(ident["obj_id"])
+        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
+            {"iterations": params.iterations}
+        res = refine_icp(m["points"], m["normals"], scene_points(ident["cand_id"]), R, t, diameters[ident["obj_id"]],
+                         max_corr_dist_frac=params.max_corr_frac, point_to_plane=params.point_to_plane, **schedule)
+        return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
+
+    def verified(ident: dict[str, Any], pose: tuple, n_inliers: int, inlier_ratio: float) -> dict[str, Any]:
+        """One hypothesis after ICP (``pose``, from :func:`icp`) and verification, as a row
+        of hypotheses.parquet; ident: its cand_id, scene_id, im_id, obj_id, hyp, parent,
+        source, prior_score."""
+        R, t, fitness, rmse = pose
+        obj_id, im_id, cand_id = ident["obj_id"], ident["im_id"], ident["cand_id"]
+        evidence = registration_evidence(inlier_ratio, fitness)
+        terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
+        if verify is not None:
+            v = verify(im_id, cand_id, obj_id, R, t, diameters[obj_id], evidence)
+            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
+        return {**ident, "n_inliers": int(n_inliers), "inlier_ratio": float(inlier_ratio), "R": _flat(R, 9),
+                "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms}
+
+    def timed(im_id: int, t0: float) -> float:
+        dt = time.perf_counter() - t0
+        image_time[im_id] = image_time.get(im_id, 0.0) + dt
+        return dt
+
+    def best_of(rows: list[dict[str, Any]]) -> dict[str, Any]:
+        """The first of a candidate's rows by the ranking key, then the evidence, then hyp
+        (as the final choice below orders them)."""
+        def rank(r: dict[str, Any]) -> tuple:
+            v, e = r[key], r["evidence"]
+            return (bool(np.isnan(v)), 0.0 if np.isnan(v) else -v, 0.0 if np.isnan(e) else -e, r["hyp"])
+        return min(rows, key=rank)
+
+    def turned_rows(parent: dict[str, Any], first_hyp: int) -> list[dict[str, Any]]:
+        """The turns of ``parent``, each aligned by a quick ICP; the ``params.turns`` best
+        by that ICP's fitness refined by the full ICP and verified, numbered from
+        ``first_hyp``. (The full ICP from a turned start runs its whole schedule, about
+        7x the quick one, and a verification's render costs more than either: both are
+        kept for the few turns that fit.)"""
+        T = (turns or {}).get(parent["obj_id"])
+        if T is None or not len(T) or verify is None or params.turns <= 0:
+            return []
+        t0 = time.perf_counter()
+        ident = {k: parent[k] for k in ("cand_id", "scene_id", "im_id", "obj_id", "prior_score")}
+        ident |= {"parent": parent["hyp"], "source": "turn"}
+        R0, t0_ = np.reshape(parent["R"], (3, 3)), np.asarray(parent["t"], float)
+        quick = [icp(ident, *turned(R0, t0_, Ti), float("nan"), quick=True) for Ti in T]
+        order = np.argsort(-np.nan_to_num([q[2] for q in quick], nan=-1.0), kind="stable")
+        # Distinct from the parent and from each other (turns that slid to one pose are
+        # one hypothesis), as register keeps its hypotheses distinct.
+        keep = distinct_poses([(R0, t0_)] + [quick[j][:2] for j in order], params.turns + 1, 5.0,
+                              0.05 * diameters[parent["obj_id"]])
+        best = [order[i - 1] for i in keep if i > 0]
+        rows = [verified(ident | {"hyp": first_hyp + k}, icp(ident, *quick[j][:2], quick[j][2]), 0, 0.0)
+                for k, j in enumerate(best)]
+        dt = timed(parent["im_id"], t0)  # the quick ICPs count even when no turn is kept
+        for r in rows:
+            r["time_s"] = dt / len(rows)
+        return rows
+
+    rows: list[dict[str, Any]] = []
+    for _, group in registered.groupby("cand_id", sort=False):
+        mine = []
+        for c in group.itertuples(index=False):
+            t0 = time.perf_counter()
+            ident = {"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id),
+                     "obj_id": int(c.obj_id), "hyp": int(c.hyp), "parent": -1, "source": str(c.source),
+                     "prior_score": float(c.prior_score)}
+            pose = icp(ident, np.asarray(c.R, float).reshape(3, 3), np.asarray(c.t, float), float(c.fitness))
+            mine.append(verified(ident, pose, int(c.n_inliers), float(c.inlier_ratio)))
+            mine[-1]["time_s"] = timed(ident["im_id"], t0)
+        mine += turned_rows(best_of(mine), max(r["hyp"] for r in mine) + 1)
+        rows += mine
+        progress()
+    hyps = pd.DataFrame(rows, columns=HYPOTHESIS_COLUMNS[:-1])
     order = hyps.sort_values(["cand_id", key, "evidence", "hyp"], ascending=[True, False, False, True],
                              na_position="last")
     best = order.groupby("cand_id", sort=False).head(1).index

@@ -71,6 +71,10 @@ class StageSpec:
     side: ``model`` for the per-object onboarding stages, whose ``dataset`` key may be
     the models' own fingerprint (:attr:`pipeline.plan.DatasetPlan.models_key`).
     algorithm: where the stage's method lives, one import away from the stage module.
+    threads, mem_mb: what one job needs, the Snakemake rule's ``threads`` and
+    ``resources: mem_mb`` (a cluster profile may raise them per rule). The memory is
+    about twice the peak measured with the default encoders on the benchmarks (the
+    manifests' ``peak_rss_mb``), more where the foundation encoders run.
     """
 
     name: str
@@ -84,6 +88,8 @@ class StageSpec:
     synthetic_only: bool = False
     summary: str = ""
     module: str = field(default="")
+    threads: int = 1
+    mem_mb: int = 1500
 
     def __post_init__(self) -> None:
         if not self.module:
@@ -112,48 +118,49 @@ _SPECS = (
     StageSpec(
         "synth", 1, ("dataset",), reads={"dataset": ("source",)}, writes={"dataset": ("{dataset}",)},
         keyed_by=("source",), algorithm="pipeline.synth.build_dataset", side="dataset", synthetic_only=True,
-        summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)"),
+        summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)", threads=1, mem_mb=2000),
     StageSpec(
         "render_templates", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("templates.zarr",)},
         keyed_by=("dataset",), algorithm="pipeline.render.templates.render_object_templates", side="model",
-        summary="R object-centred template views of one object"),
+        summary="R object-centred template views of one object", threads=1, mem_mb=1500),
     StageSpec(
-        "symmetries", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("symmetries.json",)},
+        "symmetries", 2, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("symmetries.json",)},
         keyed_by=("dataset",), algorithm="pipeline.model_side.symmetry_record", side="model",
-        summary="the shape symmetries of one object"),
+        summary="the shape symmetries of one object", threads=1, mem_mb=1000),
     StageSpec(
         "model_features", 1, ("obj",), reads={"obj": ("render_templates", "dataset")},
         writes={"obj": ("features.zarr",)}, keyed_by=("render_templates",),
         algorithm="pipeline.model_side.model_features", side="model",
-        summary="geometric and lifted visual features of one object's sampled points"),
+        summary="geometric and lifted visual features of one object's sampled points", threads=2, mem_mb=4000),
     StageSpec(
         "segment_prior", 3, ("all",), reads={"all": ("dataset", "prior")}, writes={"all": ("candidates.parquet",)},
         keyed_by=("dataset", "prior"), algorithm="pipeline.segmentation.candidates_from_priors",
-        summary="candidate masks of every target from the localisation prior(s)"),
+        summary="candidate masks of every target from the localisation prior(s)", threads=1, mem_mb=1000),
     StageSpec(
         "scene_features", 1, ("scene",), reads={"scene": ("segment_prior", "dataset")},
         writes={"scene": ("features.zarr", "candidates.parquet", "images.parquet")},
         keyed_by=("segment_prior", "dataset"), algorithm="pipeline.scene_side.scene_features",
-        summary="lifted points and features of every candidate of one scene"),
+        summary="lifted points and features of every candidate of one scene", threads=2, mem_mb=4000),
     StageSpec(
         "register", 4, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
         writes={"scene": ("candidates.parquet", "images.parquet", "pca.zarr")},
         keyed_by=("model_features", "scene_features"), algorithm="pipeline.scene_side.register_candidates",
         summary="coarse pose hypotheses of every candidate of one scene (RANSAC on weighted fused features and on "
-                "each modality's own)"),
+                "each modality's own)", threads=1, mem_mb=1500),
     StageSpec(
-        "refine", 4, ("scene", "all"),
+        "refine", 6, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
                "all": ("refine", "scene_features", "register", "segment_prior")},
         writes={"scene": ("candidates.parquet", "hypotheses.parquet", "poses.parquet", "sar.parquet",
                           "images.parquet"),
                 "all": ("{results_csv}",)},
         keyed_by=("register", "symmetries"), algorithm="pipeline.scene_side.refine_candidates",
-        summary="ICP and verification of every hypothesis, the estimates chosen per target, SAR; item 'all': the BOP results CSV"),
+        summary="ICP and verification of every hypothesis, the estimates chosen per target, SAR; item 'all': the BOP "
+                "results CSV", threads=1, mem_mb=2000),
     StageSpec(
         "score", 2, ("all",), reads={"all": ("refine", "dataset")}, writes={"all": ("errors.parquet", "scores.json")},
         keyed_by=("refine", "dataset"), algorithm="pipeline.metrics.score_results_file",
-        summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV"),
+        summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV", threads=1, mem_mb=2000),
 )
 
 STAGES: dict[str, StageSpec] = {s.name: s for s in _SPECS}
@@ -175,10 +182,11 @@ def item_kind(item: str) -> str:
     return item.split("_", 1)[0]
 
 
-def upstream_items(upstream: str, reader_item: str, obj_ids: Iterable[int], scene_ids: Iterable[int],
+def upstream_items(upstream: str, reader_item: str, obj_ids: Iterable[int], scene_items: Iterable[str],
                    reader_stage: str | None = None) -> list[str]:
     """The items of stage ``upstream`` that the job of ``reader_stage`` for ``reader_item``
-    reads (module docstring table)."""
+    reads (module docstring table); ``scene_items`` are the dataset's scene items (a
+    scene, or a chunk of its images: ``scene_000002`` or ``scene_000002-001``)."""
     items = spec(upstream).items
     kind = items[0] if upstream == reader_stage else items[-1]
     reader = item_kind(reader_item)
@@ -189,7 +197,7 @@ def upstream_items(upstream: str, reader_item: str, obj_ids: Iterable[int], scen
     if kind == "obj":
         return [f"obj_{o:06d}" for o in obj_ids]
     if kind == "scene" and reader == "all":
-        return [f"scene_{s:06d}" for s in scene_ids]
+        return list(scene_items)
     raise ValueError(f"a {reader} item cannot read the {kind} items of stage {upstream}")
 
 

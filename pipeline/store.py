@@ -33,6 +33,8 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from pipeline.threads import job_threads
+
 MANIFEST_NAME = "_manifest.json"
 
 # Set by the stage runner when a job starts, so that a manifest's wall time covers the
@@ -378,6 +380,7 @@ def publish(
         manifest["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         manifest["wall_time_s"] = round(time.perf_counter() - t0, 3)
         manifest["peak_rss_mb"] = round(peak_rss_mb(), 1)
+        manifest["threads"] = job_threads()
         manifest["host"] = platform.node()
         manifest["argv"] = sys.argv
         manifest["libraries"] = library_versions()

@@ -7,6 +7,9 @@ rule model_features:
     params:
         item=lambda wc: f"obj_{wc.obj}",
         check=lambda wc: stage_plan(wc, "model_features").signature,
+    threads: STAGES["model_features"].threads
+    resources:
+        mem_mb=STAGES["model_features"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/model_features/{{sig}}/obj_{{obj}}.log",
     shell:

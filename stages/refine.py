@@ -5,7 +5,8 @@ the choice of the estimates per target, symmetry-aware refinement (SAR), and (it
 Per scene (algorithm: :func:`pipeline.scene_side.refine_candidates`,
 :func:`~pipeline.scene_side.choose_estimates`, :func:`~pipeline.scene_side.refine_by_symmetry`):
 
-- ``hypotheses.parquet``: every hypothesis after ICP: its pose, ICP fitness and
+- ``hypotheses.parquet``: every hypothesis after ICP (register's, and the turns of each
+  candidate's best one, source ``turn`` with its ``parent``): its pose, ICP fitness and
   inlier_rmse (mm), the RANSAC n_inliers and inlier_ratio, ``evidence`` (inlier ratio x
   ICP fitness), the verification terms (silhouette, depth_fit, coverage, free_space)
   and score (``verification``), and ``chosen`` (its candidate's best).
@@ -33,7 +34,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from pipeline.plan import DatasetPlan, obj_item, scene_item
+from pipeline.plan import DatasetPlan, obj_item
 from pipeline.store import load_arrays, read_table, write_table
 
 
@@ -42,9 +43,10 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         return _collect(plan)
     from pipeline.bop.detections import rle_decode
     from pipeline.geometry.symmetry import SymmetrySet
-    from pipeline.model_side import read_symmetries
+    from pipeline.model_side import read_near_symmetries, read_symmetries
     from pipeline.plan import build_encoders
     from pipeline.progress import progress_bar
+    from pipeline.registration.turns import model_turns
     from pipeline.scene_side import (POSE_COLUMNS, SAR_COLUMNS, FineIcp, PoseVerifier, SceneImages, choose_estimates,
                                      refine_by_symmetry, refine_candidates, sar_transforms, time_table)
 
@@ -53,7 +55,9 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     bop = io.bop()
     infos = bop.models_info()
     diameters = {o: i.diameter for o, i in infos.items()}
-    targets = [t for t in bop.targets(plan.root / plan.dataset.targets_file) if t.scene_id == scene_id]
+    im_ids = io.images()  # the scene's, or this chunk's (images_per_job)
+    targets = [t for t in bop.targets(plan.root / plan.dataset.targets_file)
+               if t.scene_id == scene_id and t.im_id in im_ids]
     registered = read_table(io.input_dir("register") / "candidates.parquet")
     registered = registered[registered.status == "ok"]
     scene = load_arrays(io.input_dir("scene_features") / "features.zarr", ["points", "n_points", "cand_id"])
@@ -82,13 +86,16 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     images = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
                          depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
                          mesh=bop.load_model, candidate=candidate).keeping_last()
-    with progress_bar(f"refine {item}", total=len(registered), enabled=progress) as bar, \
+    objects = sorted(set(registered.obj_id.astype(int)))
+    symmetries = {o: io.input_dir("symmetries", obj_item(o)) / "symmetries.json" for o in objects}
+    found = {o: read_symmetries(path) for o, path in symmetries.items()}
+    turns = {o: model_turns(read_near_symmetries(symmetries[o]), model_of(o)["points"], found[o], diameters[o])
+             for o in objects} if p.turns else {}
+    with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
             PoseVerifier(images, p) as verify:
-        asymmetric = {o for o in set(registered.obj_id.astype(int))
-                      if read_symmetries(io.input_dir("symmetries", obj_item(o)) / "symmetries.json").is_trivial}
-        fine = FineIcp(images, p, asymmetric) if p.icp and p.fine_icp_points else None
+        fine = FineIcp(images, p, {o for o in objects if found[o].is_trivial}) if p.icp and p.fine_icp_points else None
         hypotheses, refined, image_time = refine_candidates(registered, scene_points, model_of, diameters, p, verify,
-                                                            fine, bar.advance)
+                                                            fine, bar.advance, turns)
     table, poses = choose_estimates(refined, targets, diameters, p)
     sar_rows: list[dict] = []
     if len(poses):
@@ -123,8 +130,7 @@ def _collect(plan: DatasetPlan) -> None:
 
     io = plan.io("refine", "all")
     poses, times = [], []
-    for scene_id in plan.scene_ids:
-        item = scene_item(scene_id)
+    for item in plan.scene_items:
         poses.append(read_table(io.input_dir("refine", item) / "poses.parquet"))
         times.extend(read_table(io.input_dir(stage, item) / "images.parquet")
                      for stage in ("scene_features", "register", "refine"))
@@ -155,8 +161,8 @@ def _no_estimate_note(io, plan: DatasetPlan) -> str:
 
     prior = read_manifest(io.input_dir("segment_prior")).get("summary", {})
     reasons = Counter({f"segment_prior: {k}": int(v) for k, v in (prior.get("dropped") or {}).items()})
-    for scene_id in plan.scene_ids:
-        summary = read_manifest(io.input_dir("scene_features", scene_item(scene_id))).get("summary", {})
+    for item in plan.scene_items:
+        summary = read_manifest(io.input_dir("scene_features", item)).get("summary", {})
         for why in (summary.get("skipped") or {}).values():
             reasons[f"scene_features: {re.sub(r'^[0-9.]+ ', '', str(why))}"] += 1
     n_det = prior.get("n_detections", "?")

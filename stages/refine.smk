@@ -7,6 +7,9 @@ rule refine:
     params:
         item=lambda wc: f"scene_{wc.scene}",
         check=lambda wc: stage_plan(wc, "refine").signature,
+    threads: STAGES["refine"].threads
+    resources:
+        mem_mb=STAGES["refine"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/refine/{{sig}}/scene_{{scene}}.log",
     shell:
@@ -22,6 +25,9 @@ rule refine_collect:
     params:
         item="all",
         check=lambda wc: stage_plan(wc, "refine").signature,
+    threads: STAGES["refine"].threads
+    resources:
+        mem_mb=STAGES["refine"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/refine/{{sig}}/all.log",
     shell:

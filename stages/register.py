@@ -40,7 +40,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
 
     with progress_bar(f"register {item}", total=len(cands), enabled=progress) as bar:
         table, image_time = register_candidates(cands, scene, model_of, {o: i.diameter for o, i in infos.items()}, p,
-                                                lambda cand_id: io.seed(f"{item}/{cand_id}", p.seed), bar.advance)
+                                                lambda cand_id: io.candidate_seed(int(cand_id), p.seed), bar.advance)
     with io.publish() as w:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
         write_table(time_table(scene_id, image_time), w.dir / "images.parquet", metadata={"key": io.out.key})

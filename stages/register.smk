@@ -7,6 +7,9 @@ rule register:
     params:
         item=lambda wc: f"scene_{wc.scene}",
         check=lambda wc: stage_plan(wc, "register").signature,
+    threads: STAGES["register"].threads
+    resources:
+        mem_mb=STAGES["register"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/register/{{sig}}/scene_{{scene}}.log",
     shell:

@@ -6,6 +6,9 @@ rule render_templates:
         f"{CACHE}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}/_manifest.json",
     params:
         item=lambda wc: f"obj_{wc.obj}",
+    threads: STAGES["render_templates"].threads
+    resources:
+        mem_mb=STAGES["render_templates"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}.log",
     shell:

@@ -1,4 +1,5 @@
-"""Stage scene_features: per candidate of one scene, lifted points and their features.
+"""Stage scene_features: per candidate of one scene (or of a chunk of its images, see
+``images_per_job``), lifted points and their features.
 
 ``features.zarr`` (C = candidates of the scene, M = ``scene_features.n_points``):
 points (C, M, 3) float32 mm camera frame, pixels (C, M, 2) int32 (u, v), geometric
@@ -30,7 +31,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     infos = bop.models_info()
     cams = bop.scene_camera(scene_id)
     cands = read_table(io.input_dir("segment_prior") / "candidates.parquet")
-    cands = cands[cands.scene_id == scene_id].sort_values("cand_id")
+    cands = cands[(cands.scene_id == scene_id) & cands.im_id.isin(io.images())].sort_values("cand_id")
     geo_enc, vis_enc = build_encoders(plan.run)
     found = {}
     image_rows = []
@@ -46,7 +47,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                     raise ValueError(f"{src}: detection {r.det_index} (scene {scene_id}, image {im_id}): "
                                      f"mask size {mask.shape} differs from the depth image {depth.shape}")
                 masks.append(CandidateMask(int(r.cand_id), int(r.obj_id), mask, (r.bbox_x, r.bbox_y, r.bbox_w, r.bbox_h),
-                                           infos[int(r.obj_id)].diameter, io.seed(f"{item}/{r.cand_id}", p.seed)))
+                                           infos[int(r.obj_id)].diameter, io.candidate_seed(int(r.cand_id), p.seed)))
             for f in scene_features(bop.load_rgb(scene_id, int(im_id)), depth, cams[int(im_id)].K, masks, geo_enc,
                                     vis_enc, p, progress=bar.advance):
                 found[f.cand_id] = f

@@ -7,6 +7,9 @@ rule scene_features:
     params:
         item=lambda wc: f"scene_{wc.scene}",
         check=lambda wc: stage_plan(wc, "scene_features").signature,
+    threads: STAGES["scene_features"].threads
+    resources:
+        mem_mb=STAGES["scene_features"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}.log",
     shell:

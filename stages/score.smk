@@ -7,6 +7,9 @@ rule score:
     params:
         item="all",
         check=lambda wc: stage_plan(wc, "score").signature,
+    threads: STAGES["score"].threads
+    resources:
+        mem_mb=STAGES["score"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/score/{{sig}}.log",
     shell:

@@ -6,6 +6,9 @@ rule segment_prior:
         f"{CACHE}/{{ds}}/segment_prior/{{sig}}/all/_manifest.json",
     params:
         item="all",
+    threads: STAGES["segment_prior"].threads
+    resources:
+        mem_mb=STAGES["segment_prior"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/segment_prior/{{sig}}.log",
     shell:

@@ -6,6 +6,9 @@ rule symmetries:
         f"{CACHE}/{{ds}}/symmetries/{{sig}}/obj_{{obj}}/_manifest.json",
     params:
         item=lambda wc: f"obj_{wc.obj}",
+    threads: STAGES["symmetries"].threads
+    resources:
+        mem_mb=STAGES["symmetries"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/symmetries/{{sig}}/obj_{{obj}}.log",
     shell:

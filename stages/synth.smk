@@ -4,6 +4,9 @@ rule synth:
         f"{CACHE}/{{ds}}/synth/{{sig}}/dataset/_manifest.json",
     params:
         item="dataset",
+    threads: STAGES["synth"].threads
+    resources:
+        mem_mb=STAGES["synth"].mem_mb,
     log:
         f"{LOGS}/{{ds}}/synth/{{sig}}.log",
     shell:

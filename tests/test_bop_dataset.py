@@ -207,7 +207,7 @@ def test_plan_keys_cover_file_contents_and_remember_hashes(tree, tmp_path, monke
     monkeypatch.setattr(file_hashes, "file_digest", lambda p: hashed.append(p) or real_digest(p))
 
     objs, scenes, data_key, models_key, has_gt = _bop_layout(root, ds, cache)
-    assert (objs, scenes, has_gt) == ([1, 2], [3], True) and len(data_key) == len(models_key) == 12
+    assert (objs, scenes, has_gt) == ([1, 2], {3: [0, 5]}, True) and len(data_key) == len(models_key) == 12
     assert len(hashed) > 10 and (cache / file_hashes.DB_NAME).is_file()
     hashed.clear()
     assert _bop_layout(root, ds, cache)[2:4] == (data_key, models_key) and hashed == []  # stat only

@@ -182,8 +182,12 @@ def test_cli_writes_pose_overlay_and_stage_artifacts(case, tmp_path, monkeypatch
     assert feats["points"].shape[0] == 1 and feats["n_points"][0] == 1000
     assert load_arrays(out / "model_features" / "features.zarr", ["points"])["points"].shape == (2000, 3)
     reg = read_table(out / "register" / "candidates.parquet")
-    assert reg[reg.hyp == rec["hypothesis"]["index"]].n_inliers.iloc[0] == rec["n_inliers"]
-    assert len(rec["hypotheses"]) == len(reg) and sum(h["chosen"] for h in rec["hypotheses"]) == 1
+    registered = rec["hypothesis"]["parent"] if rec["hypothesis"]["source"] == "turn" else rec["hypothesis"]["index"]
+    assert reg[reg.hyp == registered].n_inliers.iloc[0] == rec["n_inliers"]
+    # register's hypotheses, then refine's turns of the best one
+    assert len([h for h in rec["hypotheses"] if h["source"] != "turn"]) == len(reg)
+    assert 0 < sum(h["source"] == "turn" for h in rec["hypotheses"]) <= 3
+    assert sum(h["chosen"] for h in rec["hypotheses"]) == 1
     poses = read_table(out / "refine" / "poses.parquet")
     assert np.allclose(np.reshape(poses.R.iloc[0], (3, 3)), rec["R"])
     for stage in ("render_templates", "symmetries", "model_features", "segment_prior", "scene_features", "register",

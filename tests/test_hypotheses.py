@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.spatial.transform import Rotation
 
 from pipeline.config import RefineParams, RegisterParams
 from pipeline.geometry.transforms import random_rotation, rotation_angle_deg
@@ -129,33 +130,37 @@ def rendered_frame():
     K = np.array([[572.4, 0.0, 320.0], [0.0, 573.6, 240.0], [0.0, 0.0, 1.0]])
     R = random_rotation(np.random.default_rng(5))
     t = np.array([10.0, -20.0, 700.0])
-    renderer = Renderer(640, 480, znear=1.0, zfar=100000.0)
-    renderer.add_mesh(1, mesh)
-    depth = renderer.render_depth(1, R, t, K)
+    # No renderer outlives the fixture: pyrender's EGL teardown terminates the display
+    # that every other open renderer uses, so renderers are opened and closed in turn.
+    with Renderer(640, 480, znear=1.0, zfar=100000.0) as renderer:
+        renderer.add_mesh(1, mesh)
+        depth = renderer.render_depth(1, R, t, K)
     mask = depth > 0
     rng = np.random.default_rng(6)
     noisy = np.where(mask, depth + rng.normal(scale=1.5, size=depth.shape), 0).astype(np.float32)
     noisy[rng.random(depth.shape) < 0.1] = 0  # holes
-    yield {"renderer": renderer, "K": K, "R": R, "t": t, "depth": noisy, "mask": mask,
-           "diameter": float(np.linalg.norm(mesh.extents))}
-    renderer.close()
+    return {"mesh": mesh, "K": K, "R": R, "t": t, "depth": noisy, "mask": mask,
+            "diameter": float(np.linalg.norm(mesh.extents))}
 
 
 def test_verification_prefers_the_true_pose_over_its_flip(rendered_frame):
     from pipeline.geometry.crops import mask_to_bbox
     from pipeline.registration.verification import verification_window, verify_pose
+    from pipeline.render import Renderer
 
     f = rendered_frame
     window = verification_window(mask_to_bbox(f["mask"]), f["depth"].shape)
     tol = max(5.0, 0.05 * f["diameter"])
-    true = verify_pose(f["renderer"], 1, f["R"], f["t"], f["K"], f["depth"], f["mask"], window, tol)
+    with Renderer(640, 480, znear=1.0, zfar=100000.0) as renderer:
+        renderer.add_mesh(1, f["mesh"])
+        true = verify_pose(renderer, 1, f["R"], f["t"], f["K"], f["depth"], f["mask"], window, tol)
+        # the flip: 180 degrees about the model's x axis, its centre kept in place
+        flip = np.diag([1.0, -1.0, -1.0])
+        centre = np.asarray(f["mesh"].vertices).mean(axis=0)
+        R_f = f["R"] @ flip
+        t_f = f["t"] + f["R"] @ centre - R_f @ centre
+        flipped = verify_pose(renderer, 1, R_f, t_f, f["K"], f["depth"], f["mask"], window, tol)
     assert true.silhouette > 0.98 and true.depth_fit > 0.98 and true.coverage > 0.98 and true.free_space < 0.01
-    # the flip: 180 degrees about the model's x axis, its centre kept in place
-    flip = np.diag([1.0, -1.0, -1.0])
-    centre = f["renderer"]._vertices[1].mean(axis=0)
-    R_f = f["R"] @ flip
-    t_f = f["t"] + f["R"] @ centre - R_f @ centre
-    flipped = verify_pose(f["renderer"], 1, R_f, t_f, f["K"], f["depth"], f["mask"], window, tol)
     assert flipped.score < true.score - 0.2
     assert flipped.depth_fit < 0.8 and flipped.silhouette < true.silhouette
 
@@ -203,3 +208,104 @@ def test_coherent_but_wrong_matches_lose_to_the_stronger_modality():
     assert rotation_angle_deg(by_source["geometric"].R, R) < 1.0
     assert rotation_angle_deg(by_source["visual"].R, R) > 170.0  # the flip
     assert by_source["geometric"].n_inliers > 3 * by_source["visual"].n_inliers
+
+
+def test_turns_of_a_box_are_its_cube_turns_modulo_its_half_turns():
+    """A box with three different sides: its symmetry group is the three half turns
+    about its axes, so the 23 turns of the cube's group fall into 5 classes besides the
+    group itself; a cube has none left; a near-symmetry comes first."""
+    import trimesh
+
+    from pipeline.geometry.symmetry import SymmetrySet
+    from pipeline.registration.turns import axis_turns, model_turns
+
+    box = trimesh.creation.box(extents=(40.0, 60.0, 100.0))
+    box.apply_translation([5.0, -3.0, 20.0])  # the turns are about the box's centre, not the origin
+    points = np.asarray(box.vertices)
+    centre = np.array([5.0, -3.0, 20.0])
+    turns = axis_turns(points)
+    assert turns.shape == (23, 4, 4)
+    assert np.allclose(turns[:, :3, :3] @ centre + turns[:, :3, 3], centre)
+    assert len({tuple(np.round(T[:3, :3]).ravel()) for T in turns}) == 23
+    halves = []
+    for axis in np.eye(3):
+        T = np.eye(4)
+        T[:3, :3] = 2 * np.outer(axis, axis) - np.eye(3)
+        T[:3, 3] = centre - T[:3, :3] @ centre
+        halves.append(T)
+    kept = model_turns([], points, SymmetrySet(discrete=halves), 120.0)
+    assert len(kept) == 5
+    near = np.eye(4)
+    near[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # a quarter turn about z
+    near[:3, 3] = centre - near[:3, :3] @ centre
+    with_near = model_turns([near], points, SymmetrySet(discrete=halves), 120.0)
+    assert len(with_near) == 5 and np.allclose(with_near[0], near)
+    cube = trimesh.creation.box(extents=(50.0, 50.0, 50.0))
+    from pipeline.geometry.sampling import sample_surface
+    from pipeline.geometry.symmetry import estimate_symmetries
+
+    cube_points, cube_normals = sample_surface(cube, 10000, seed=0)
+    assert len(model_turns([], cube_points, estimate_symmetries(cube_points, 86.6, cube_normals), 86.6)) == 0
+
+
+def test_near_symmetries_of_an_almost_square_box_start_with_its_quarter_turn():
+    import trimesh
+
+    from pipeline.geometry.sampling import sample_surface
+    from pipeline.geometry.symmetry import estimate_symmetries
+
+    box = trimesh.creation.box(extents=(100.0, 115.0, 200.0))
+    points, normals = sample_surface(box, 10000, seed=0)
+    details: dict = {}
+    sym = estimate_symmetries(points, float(np.linalg.norm(box.extents)), normals, details=details)
+    assert len(sym.discrete) == 3  # the half turns
+    T, score = details["near"][0]
+    axis_angle = np.degrees(np.linalg.norm(Rotation.from_matrix(T[:3, :3]).as_rotvec()))
+    assert 70.0 < axis_angle < 110.0 and abs(Rotation.from_matrix(T[:3, :3]).as_rotvec()[2]) > 0.95 * np.radians(axis_angle)
+    assert 0.005 * 241.0 < score < 0.05 * 241.0
+
+
+def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wrong(rendered_frame):
+    """The only coarse hypothesis is the true pose turned half about the model's z axis
+    (the toy truck's near-symmetry: chassis and wheels match, cab and cargo do not);
+    refinement tries the turns of it, and the verification picks the true pose back,
+    recording the turn and its parent. With ``turns`` 0 the wrong pose stays."""
+    from pipeline.geometry.sampling import sample_surface
+    from pipeline.geometry.symmetry import SymmetrySet
+    from pipeline.registration.turns import model_turns, turned
+    from pipeline.scene_side import PoseVerifier, SceneImages
+
+    f = rendered_frame
+    mesh = f["mesh"]
+    points, normals = sample_surface(mesh, 3000, seed=0)
+    half = np.eye(4)
+    half[:3, :3] = np.diag([-1.0, -1.0, 1.0])
+    centre = (points.min(0) + points.max(0)) / 2
+    half[:3, 3] = centre - half[:3, :3] @ centre
+    R0, t0 = turned(f["R"], f["t"], half)
+    registered = pd.DataFrame([{"cand_id": 0, "scene_id": 1, "im_id": 0, "obj_id": 1, "prior_score": 0.9, "hyp": 0,
+                                "source": "fused", "n_inliers": 50, "inlier_ratio": 0.05, "R": R0.ravel().tolist(),
+                                "t": t0.tolist(), "fitness": 0.5}])
+    ys, xs = np.nonzero(f["mask"])
+    bbox = (xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+    images = SceneImages(rgb=lambda i: None, depth=lambda i: f["depth"], K=lambda i: f["K"], mesh=lambda o: mesh,
+                         candidate=lambda c: (bbox, f["mask"]))
+    ys, xs = np.nonzero(f["depth"] > 0)
+    z = f["depth"][ys, xs]
+    scene = np.stack([(xs - f["K"][0, 2]) * z / f["K"][0, 0], (ys - f["K"][1, 2]) * z / f["K"][1, 1], z], 1)
+    scene = scene[np.random.default_rng(0).choice(len(scene), 1000, replace=False)]
+    turns = {1: model_turns([], points, SymmetrySet(), f["diameter"])}
+    model = {"points": points, "normals": normals}
+    for n_turns, right in ((3, True), (0, False)):
+        params = RefineParams(turns=n_turns)
+        with PoseVerifier(images, params) as verify:
+            hyps, cands, _ = refine_candidates(registered, lambda c: scene, lambda o: model, {1: f["diameter"]},
+                                               params, verify, None, turns=turns)
+        chosen = cands.iloc[0]
+        error = rotation_angle_deg(np.reshape(chosen.R, (3, 3)), f["R"])
+        assert (error < 3.0) == right, (n_turns, error)
+        assert len(hyps) == 1 + n_turns
+        if right:
+            assert chosen.source == "turn" and chosen.parent == 0 and chosen.hyp >= 1
+            assert chosen.n_inliers == 0 and chosen.evidence == 0.0
+            assert (hyps.source == "turn").sum() == 3 and (hyps[hyps.source == "turn"].parent == 0).all()

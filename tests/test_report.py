@@ -374,6 +374,7 @@ class _Plan:
         self.name = "fake"
         self.dataset = SimpleNamespace(kind="synthetic", split="test")
         self.obj_ids, self.scene_ids = [1, 2], scene_ids
+        self.scene_items = [f"scene_{s:06d}" for s in scene_ids]
         self.results_csv_name = "freeze_fake-test.csv"
         self.stages = {s: _Stage(root, s) for s in ("synth", "refine", "register", "score")}
 

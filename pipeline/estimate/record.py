@@ -26,9 +26,11 @@ def candidate_record(plan, frame) -> dict[str, Any]:
     Keys: R (3, 3) and t (3,) mm model-to-camera, evidence (RANSAC inlier ratio x ICP
     fitness), n_inliers, inlier_ratio, ransac_fitness, n_correspondences, fitness (ICP),
     inlier_rmse_mm, sar_variant / sar_reason / sar_n_variants / sar_scores, n_valid_points,
-    n_points, the chosen hypothesis (its source, verification terms, whether the fine ICP
-    kept its pose, the fusion weights) and every hypothesis' score, coarse and icp poses,
-    and the symmetry counts. Raises EstimateError, with
+    n_points, the chosen hypothesis (its source, index and parent, verification terms,
+    whether the fine ICP kept its pose, the fusion weights) and every hypothesis' score,
+    coarse and icp poses, and the symmetry counts. For a turn (source ``turn``, see
+    :mod:`pipeline.registration.turns`) the RANSAC numbers and the coarse pose are those
+    of the hypothesis it turned (its parent). Raises EstimateError, with
     the stage's reason, when the candidate was skipped or got no pose.
     """
     from pipeline.store import read_table
@@ -40,7 +42,9 @@ def candidate_record(plan, frame) -> dict[str, Any]:
                             "box, the depth image and --depth-scale")
     refined = _one(read_table(plan["refine"].item_dir(scene) / "candidates.parquet"), "refine")
     hyps = read_table(plan["register"].item_dir(scene) / "candidates.parquet")
-    reg = _one(hyps[hyps.hyp == int(refined.hyp)], "register (the chosen hypothesis)")
+    # A turn (refine's source "turn") has no row in register's table: its parent has.
+    registered_hyp = int(refined.parent) if int(refined.parent) >= 0 else int(refined.hyp)
+    reg = _one(hyps[hyps.hyp == registered_hyp], "register (the chosen hypothesis)")
     verified = read_table(plan["refine"].item_dir(scene) / "hypotheses.parquet")
     poses = read_table(plan["refine"].item_dir(scene) / "poses.parquet")
     if len(poses) == 0:
@@ -57,7 +61,7 @@ def candidate_record(plan, frame) -> dict[str, Any]:
         "sar_variant": int(pose.sar_variant), "sar_reason": str(pose.sar_reason),
         "sar_n_variants": int(len(sar)), "sar_scores": [float(s) for s in sar.similarity],
         "n_valid_points": int(sf.n_valid_points), "n_points": int(sf.n_points),
-        "hypothesis": {"source": str(refined.source), "index": int(refined.hyp),
+        "hypothesis": {"source": str(refined.source), "index": int(refined.hyp), "parent": int(refined.parent),
                        "verification": {k: float(refined[k]) for k in
                                         ("silhouette", "depth_fit", "coverage", "free_space", "verification")},
                        "fine_icp": bool(refined.fine_icp),

@@ -272,6 +272,13 @@ class SymmetryParams:
         lies at least 2/3 of the way from an element to the angle half-way between two,
         where a discrete symmetry scores worst).
     max_group: closure stops beyond this many discrete elements.
+    near_threshold: near-symmetries (``details["near"]``): refined candidates that are
+        not accepted but score below this fraction of the diameter. They are turns a
+        partial, noisy view of the shape can hardly rule out (the TYO-L basket turned a
+        quarter about its axis scores 0.022 d), which refinement tries as extra
+        hypotheses and lets the depth decide.
+    max_near: at most this many near-symmetries are kept, lowest score first, one per
+        coset of the symmetry group.
     seed: seeds the subsampling.
     """
 
@@ -289,6 +296,8 @@ class SymmetryParams:
     axis_cluster_deg: float = 4.0
     continuous_test_step_deg: float = 10.0
     max_group: int = 120
+    near_threshold: float = 0.05
+    max_near: int = 4
     seed: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -610,7 +619,9 @@ def estimate_symmetries(
         fitted fixed point), ``accepted`` [(T (4, 4), score mm)] (refined candidates
         accepted, merged, before the continuous/discrete split), ``group_scores`` (the
         scores of ``discrete``, mm), ``rejected_best`` lowest score (mm) of a refined
-        candidate that was rejected, ``threshold_mm``, ``n_candidates`` and ``seconds``.
+        candidate that was rejected, ``near`` [(T (4, 4), score mm)] (the
+        near-symmetries, see :class:`SymmetryParams`), ``threshold_mm``,
+        ``n_candidates`` and ``seconds``.
     Returns a :class:`SymmetrySet` (transforms in the points' frame, mm).
     """
     p = params or SymmetryParams()
@@ -650,6 +661,8 @@ def estimate_symmetries(
         moving[sel] = step > 0.1
     ok = scores <= thr
     rejected_best = float(scores[~ok].min()) if np.any(~ok) else float("inf")
+    near_sel = ~ok & (scores <= p.near_threshold * float(diameter))
+    near_T, near_s = _dedup([T for T in refined[near_sel]], list(scores[near_sel]), p.merge_deg, merge_mm)
     acc_T, acc_s = _dedup([T for T in refined[ok]], list(scores[ok]), p.merge_deg, merge_mm)
 
     # Common centre, transforms re-expressed about it.
@@ -734,8 +747,21 @@ def estimate_symmetries(
         T[np.abs(T) < 1e-12] = 0.0
         T[3] = [0.0, 0.0, 0.0, 1.0]
 
+    # Near-symmetries, one per coset of the group: a near-symmetry composed with a
+    # symmetry looks the same to any verification, so one of them is enough.
+    near: list[tuple[np.ndarray, float]] = []
+    for T, s in zip(near_T, near_s):
+        if len(near) >= p.max_near:
+            break
+        if any(_same(T, U @ N) or _same(T, N @ U) for U in group for N in [np.eye(4)] + [n for n, _ in near]):
+            continue
+        T = T.copy()
+        T[3] = [0.0, 0.0, 0.0, 1.0]
+        near.append((T, float(s)))
+
     if details is not None:
         details.update(
+            near=near,
             centre=c,
             accepted=list(zip(acc_T, acc_s)),
             group_scores=group_s[1:],

@@ -146,7 +146,7 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
     """The case of ``obj_id`` from a dataset plan's model_features, scene_features and
     register artifacts: candidate ``cand_id`` (searched in ``scene_id``, or in every scene),
     or else the object's first registered candidate (lowest scene id, then candidate id)."""
-    from pipeline.plan import obj_item, scene_item
+    from pipeline.plan import obj_item
     from pipeline.store import load_arrays, load_attrs, read_table
 
     mf_path = plan["model_features"].item_dir(obj_item(obj_id)) / "features.zarr"
@@ -158,8 +158,8 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
         raise LookupError(f"{plan.name}: no scene {scene_id} (scenes: {', '.join(map(str, plan.scene_ids))})")
     scenes = [scene_id] if scene_id is not None else list(plan.scene_ids)
     chosen = None
-    for s in scenes:
-        path = plan["register"].item_dir(scene_item(s)) / "candidates.parquet"
+    for item in [i for sc in scenes for i in plan.items_of_scene(sc)]:
+        path = plan["register"].item_dir(item) / "candidates.parquet"
         if not path.exists():
             raise FileNotFoundError(f"{path} missing: run the register stage first (snakemake --cores 2 bop_all)")
         table = read_table(path)
@@ -176,18 +176,18 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
             # several hypotheses per candidate); hyp 0 when the run had one modality
             first = rows[rows.cand_id == rows.cand_id.iloc[0]]
             fused = first[first.source == "fused"] if "source" in first else first.iloc[:0]
-            chosen = (s, (fused if len(fused) else first).iloc[0])
+            chosen = (item, (fused if len(fused) else first).iloc[0])
             break
     if chosen is None:
         what = f"candidate {cand_id}" if cand_id is not None else f"no registered candidate of object {obj_id}"
         where = f"scene {scene_id}" if scene_id is not None else f"scenes {', '.join(map(str, scenes))}"
         raise LookupError(f"{plan.name}: {what} in {where}" + (" not found" if cand_id is not None else ""))
-    s, row = chosen
+    item, row = chosen
     model = load_arrays(mf_path)
     diameter = load_attrs(mf_path).get("diameter")
     if diameter is None:
         diameter = plan.model_info(plan.bop(), obj_id).diameter
-    sf_path = plan["scene_features"].item_dir(scene_item(s)) / "features.zarr"
+    sf_path = plan["scene_features"].item_dir(item) / "features.zarr"
     scene = load_arrays(sf_path)
     i = int(np.flatnonzero(scene["cand_id"] == int(row.cand_id))[0])
     k = int(scene["n_points"][i])
@@ -197,7 +197,7 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
              "fused": fused_features(model["geometric"], model["visual"], sgeo, svis, p.pca_dim)}
     notes = [f"no {name} features in this run ({name} encoder 'none'): its row is left empty"
              for name in ("geometric", "visual") if parts[name][0].shape[1] == 0]
-    return FeatureCase(dataset=plan.name, obj_id=obj_id, scene_id=int(s), im_id=int(row.im_id), cand_id=int(row.cand_id),
+    return FeatureCase(dataset=plan.name, obj_id=obj_id, scene_id=int(row.scene_id), im_id=int(row.im_id), cand_id=int(row.cand_id),
                        model_points=model["points"].astype(np.float64), scene_points=scene["points"][i, :k].astype(np.float64),
                        parts=parts, R=np.asarray(row.R, float).reshape(3, 3), t=np.asarray(row.t, float).reshape(3),
                        diameter=float(diameter), inlier_threshold=float(p.inlier_frac * diameter),

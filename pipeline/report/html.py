@@ -310,12 +310,11 @@ def draw_samples(plan, samples: pd.DataFrame, size: int = PANEL_SIZE) -> list[Po
 def sar_objects(plan) -> list[int]:
     """Objects with at least one estimate that went through SAR (rows in some scene's
     ``refine/scene_*/sar.parquet``)."""
-    from pipeline.plan import scene_item
     from pipeline.store import read_table
 
     ids: set[int] = set()
-    for scene_id in plan.scene_ids:
-        path = plan["refine"].item_dir(scene_item(scene_id)) / "sar.parquet"
+    for item in plan.scene_items:
+        path = plan["refine"].item_dir(item) / "sar.parquet"
         if path.exists():
             t = read_table(path)
             if len(t):
@@ -342,15 +341,14 @@ def sar_figures(plan, limit: int = SAR_CASES_PER_OBJECT) -> list[tuple[int, byte
 def hypothesis_tables(plan) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per hypothesis source: hypotheses, chosen, mean verification score; per object:
     candidates, median signal and mean fusion weight of each modality (from register)."""
-    from pipeline.plan import scene_item
     from pipeline.store import read_table
 
     hyps, regs = [], []
-    for scene_id in plan.scene_ids:
-        path = plan["refine"].item_dir(scene_item(scene_id)) / "hypotheses.parquet"
+    for item in plan.scene_items:
+        path = plan["refine"].item_dir(item) / "hypotheses.parquet"
         if path.exists():
             hyps.append(read_table(path))
-        path = plan["register"].item_dir(scene_item(scene_id)) / "candidates.parquet"
+        path = plan["register"].item_dir(item) / "candidates.parquet"
         if path.exists():
             regs.append(read_table(path))
     counts = pd.DataFrame(columns=["source", "hypotheses", "chosen", "mean_score"])

@@ -1,4 +1,5 @@
-"""The hypotheses figure: every coarse hypothesis of a candidate after ICP, as the
+"""The hypotheses figure: every hypothesis of a candidate after ICP (register's coarse
+ones and the turns of the best, :mod:`pipeline.registration.turns`), as the
 verification saw it (:mod:`pipeline.registration.verification`).
 
 One row per candidate, one panel per hypothesis: the verification window of the image,
@@ -57,7 +58,8 @@ def compare_picture(crop: np.ndarray, rendered: np.ndarray, observed: np.ndarray
 
 def caption(row) -> str:
     """The panel title of one row of refine's ``hypotheses.parquet``."""
-    return (f"{row.source} #{int(row.hyp)}: score {row.verification:.2f}\n"
+    turned = f" (of #{int(row.parent)})" if getattr(row, "parent", -1) >= 0 else ""
+    return (f"{row.source} #{int(row.hyp)}{turned}: score {row.verification:.2f}\n"
             f"sil {row.silhouette:.2f} fit {row.depth_fit:.2f} cov {row.coverage:.2f} "
             f"free {row.free_space:.2f} ev {row.evidence:.3f}")
 
@@ -70,14 +72,13 @@ def hypothesis_cases(plan, limit: int = 6, scene_id: int | None = None, cand_id:
     import pandas as pd
 
     from pipeline.bop.detections import rle_decode
-    from pipeline.plan import scene_item
     from pipeline.registration.verification import verification_window
     from pipeline.render import Renderer
     from pipeline.store import read_table
 
     frames = []
-    for s in plan.scene_ids if scene_id is None else [scene_id]:
-        path = plan["refine"].item_dir(scene_item(s)) / "hypotheses.parquet"
+    for item in plan.scene_items if scene_id is None else plan.items_of_scene(scene_id):
+        path = plan["refine"].item_dir(item) / "hypotheses.parquet"
         if not path.exists():
             raise FileNotFoundError(f"{path} missing: run the refine stage first (snakemake --cores 2 bop_all)")
         frames.append(read_table(path))

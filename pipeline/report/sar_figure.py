@@ -103,15 +103,15 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     import pandas as pd
 
     from pipeline.geometry.crops import crop_and_resize, square_crop_box
-    from pipeline.plan import build_encoders, scene_item
+    from pipeline.plan import build_encoders
     from pipeline.refinement.sar import render_in_crop
     from pipeline.render import Renderer
     from pipeline.store import read_table
 
     refine = plan["refine"]
     frames = []
-    for scene_id in plan.scene_ids:
-        path = refine.item_dir(scene_item(scene_id)) / "sar.parquet"
+    for item in plan.scene_items:
+        path = refine.item_dir(item) / "sar.parquet"
         if path.exists():
             t = read_table(path)
             frames.append(t[t.obj_id == obj_id])
