@@ -90,6 +90,12 @@ include: "stages/refine.smk"
 include: "stages/score.smk"
 
 
+# The AR table and the reports take seconds: on a cluster they run where Snakemake runs,
+# not as a job of their own.
+localrules:
+    bop_all,
+
+
 rule bop_all:
     """Every stage on every dataset of the run; prints and writes the AR table and
     writes each dataset's HTML report (results/report_<dataset>.html).
@@ -108,6 +114,19 @@ rule bop_all:
         f"{PY} -m pipeline.cli table --out {{params.table}} --csv-dir {RESULTS} > {{log}} 2>&1"
         + "".join(f" && {PY} -m pipeline.cli report --dataset {ds} --out {os.path.join(RESULTS, f'report_{ds}.html')}"
                   " >> {log} 2>&1" for ds in DATASETS)
+
+
+onstart:
+    # A SLURM profile on a machine without `sbatch`: one line before any job, not a
+    # shell error per job (pipeline/cluster_submit.py).
+    from pipeline.cluster_submit import missing_submitter
+
+    _plugin = workflow.executor_plugin
+    _why = missing_submitter(_plugin.name if _plugin is not None else None,
+                             getattr(workflow.executor_settings, "submit_cmd", None))
+    if _why:
+        print(f"error: {_why}", file=sys.stderr)
+        sys.exit(1)
 
 
 onsuccess:

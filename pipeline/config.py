@@ -12,6 +12,7 @@ the field. Snakemake's ``--config`` may override a few top-level run keys with p
 strings (``datasets=a,b``, ``geometric_encoder=...`` or its short form ``geometric=...``,
 ``visual_encoder=...`` or ``visual=...``, ``weights_dir=...``, ``bop_root=...``,
 ``method=...``, ``prior=sam6d-fastsam[,cnos-fastsam]`` or its long form ``priors=...``,
+``images_per_job=N``, ``dask_scheduler=tcp://host:8786``,
 ``run=manifests/runs/other.yaml``); ``bop_root`` defaults to ``$BOP_ROOT``. An encoder may be ``none``
 (geometry-only or vision-only runs), not both.
 """
@@ -317,6 +318,11 @@ class RunManifest(_Strict):
         0, ge=0, description="scene-side jobs (scene_features, register, refine) cover at most this many of a "
                              "scene's target images each, so that a scene of many images spreads over many jobs "
                              "(0: one job per scene); the results do not depend on it, nor does any cache key")
+    dask_scheduler: str | None = Field(
+        None, description="address of a running dask.distributed scheduler (tcp://host:8786) that register, "
+                          "refine and score send their per-candidate and per-image work to (default "
+                          "$DASK_SCHEDULER_ADDRESS, else the job's own process); the results do not depend on it, "
+                          "nor does any cache key")
     stages: StageParams = StageParams()
 
     @model_validator(mode="after")
@@ -396,7 +402,7 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
 
 # Flat keys that `snakemake --config key=value` may set.
 _OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method", "priors",
-              "images_per_job")
+              "images_per_job", "dask_scheduler")
 # Short forms accepted on the command line.
 _ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder", "prior": "priors"}
 

@@ -135,6 +135,8 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value, as "
                                                    "Snakemake's --config (datasets=, visual=, run=, bop_root=, ...)"),
         directory: Path = typer.Option(Path("."), "--directory", help="working folder (logs, results, .snakemake)"),
+        profile: Optional[Path] = typer.Option(None, "--profile", help="Snakemake profile folder, e.g. profiles/slurm "
+                                               "to submit the jobs to SLURM (docs/cluster.md)"),
     ) -> None:
         """Run the pipeline (`snakemake --cores N bop_all`), resuming cleanly after a crash or a kill: it removes a
         stale lock when no other Snakemake works in the folder, keeps every artifact that was published whole
@@ -151,6 +153,21 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
                       "'extends: manifests/runs/default.yaml' and the stage's key), as Snakemake takes flat keys only")
             raise typer.Exit(1)
         workdir = directory.resolve()
+        profile_args: list[str] = []
+        if profile is not None:
+            # Checked before anything else runs: a SLURM profile where `sbatch` is
+            # missing would otherwise fail job by job (pipeline/cluster_submit.py).
+            from pipeline.cluster_submit import missing_submitter, profile_executor
+            try:
+                executor, submit = profile_executor(profile)
+            except ValueError as e:
+                out.print(f"[red]error: {e}")
+                raise typer.Exit(1) from None
+            why = missing_submitter(executor, submit, where=f"profile {profile}")
+            if why:
+                out.print(f"[red]error: {why}")
+                raise typer.Exit(1)
+            profile_args = ["--profile", str(profile.resolve())]
         try:
             rp = RunPlan(load_run(overrides))
             datasets = []
@@ -176,6 +193,6 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         # Every output is a manifest published atomically after its item, and every
         # existing one was just verified when the killed run left marks: Snakemake's
         # marks of unfinished jobs can only be stale, and the missing outputs rerun.
-        proc = _snakemake(workdir, "--cores", str(cores), target, "--ignore-incomplete",
+        proc = _snakemake(workdir, "--cores", str(cores), *profile_args, target, "--ignore-incomplete",
                           *(["--config", *args] if args else []), *ctx.args)
         raise typer.Exit(proc.returncode)

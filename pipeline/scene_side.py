@@ -32,6 +32,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import RefineParams, RegisterParams, SceneFeaturesParams
+from pipeline.parallel import Mapper
 
 VERIFICATION_COLUMNS = ["silhouette", "depth_fit", "coverage", "free_space", "verification"]
 """The verification terms of a refined pose and its score
@@ -402,7 +403,8 @@ def coarse_pose(model: MatchableModel, points: np.ndarray, geometric: np.ndarray
 def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarray],
                         model_of: Callable[[int], MatchableModel], diameters: Mapping[int, float],
                         params: RegisterParams, seed_of: Callable[[int], int],
-                        progress: Progress = _noop) -> tuple[pd.DataFrame, dict[int, float]]:
+                        progress: Progress = _noop, mapper: Mapper | None = None,
+                        ) -> tuple[pd.DataFrame, dict[int, float]]:
     """Coarse hypotheses of a scene's candidates (:func:`coarse_hypotheses`).
 
     candidates: scene_features' table (cand_id, scene_id, im_id, obj_id, score, status,
@@ -411,35 +413,77 @@ def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarra
     seed. Returns the table (:data:`REGISTER_COLUMNS`, one row per hypothesis; a skipped
     candidate has one row, hyp 0, with its status and reason; ``time_s``, the
     candidate's time, is on its first row, 0 on the others) and the registration time
-    per image (s).
+    per image (s), the sum of its candidates' times.
+
+    mapper: where the candidates run (:mod:`pipeline.parallel`; None: in this thread, one
+    after the other). Each candidate is independent (its own seed), and the rows come
+    back in the candidates' order, so the table does not depend on the mapper.
     """
     pos = {int(c): i for i, c in enumerate(arrays["cand_id"])}
-    rows = []
-    image_time: dict[int, float] = {}
+    rows_of: list[list[dict[str, Any]]] = []
+    todo: list[_RegisterItem] = []
     for c in candidates.itertuples(index=False):
         row = {"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id), "obj_id": int(c.obj_id),
                "prior_score": float(c.score), "status": c.status, "reason": c.reason, "hyp": 0, "source": ""}
+        rows_of.append([row])
         if c.status != "ok":
-            rows.append(row)
             progress()
             continue
-        t0 = time.perf_counter()
         i, k = pos[int(c.cand_id)], int(c.n_points)
-        res = coarse_hypotheses(model_of(int(c.obj_id)), arrays["points"][i, :k], arrays["geometric"][i, :k],
-                                arrays["visual"][i, :k], diameters[int(c.obj_id)], params, seed_of(int(c.cand_id)))
-        dt = time.perf_counter() - t0
-        image_time[int(c.im_id)] = image_time.get(int(c.im_id), 0.0) + dt
-        for j, h in enumerate(res.hypotheses):
-            reg = h.registration
-            rows.append({**row, "hyp": j, "source": h.source, "source_rank": h.rank,
-                         "w_geometric": res.w_geometric, "w_visual": res.w_visual,
-                         "signal_geometric": res.signal_geometric, "signal_visual": res.signal_visual,
-                         "modalities_agree": res.agree,
-                         "R": _flat(reg.R, 9), "t": _flat(reg.t, 3), "n_inliers": int(reg.n_inliers),
-                         "inlier_ratio": float(reg.inlier_ratio), "fitness": float(reg.fitness),
-                         "n_correspondences": int(reg.n_correspondences), "time_s": dt if j == 0 else 0.0})
-        progress()
-    return pd.DataFrame(rows, columns=REGISTER_COLUMNS), image_time
+        # The candidate's own slices and seed travel with it; the models are shared.
+        todo.append(_RegisterItem(len(rows_of) - 1, row, arrays["points"][i, :k], arrays["geometric"][i, :k],
+                                  arrays["visual"][i, :k], seed_of(int(c.cand_id))))
+    # Models loaded here, once per object and in this thread, not by each worker.
+    shared = _RegisterShared({o: model_of(o) for o in sorted({t.row["obj_id"] for t in todo})},
+                             {o: diameters[o] for o in sorted({t.row["obj_id"] for t in todo})}, params)
+    image_time: dict[int, float] = {}
+    for t, (found, dt) in zip(todo, (mapper or Mapper()).map(_register_one, todo, shared, progress)):
+        rows_of[t.index] = found
+        image_time[t.row["im_id"]] = image_time.get(t.row["im_id"], 0.0) + dt
+    return pd.DataFrame([r for rows in rows_of for r in rows], columns=REGISTER_COLUMNS), image_time
+
+
+@dataclass(frozen=True)
+class _RegisterItem:
+    """One candidate for :func:`_register_one`: its place in the table, its row's
+    identity, its points (k, 3) mm, geometric (k, G) and visual (k, C) features, seed."""
+
+    index: int
+    row: dict[str, Any]
+    points: np.ndarray
+    geometric: np.ndarray
+    visual: np.ndarray
+    seed: int
+
+
+@dataclass(frozen=True)
+class _RegisterShared:
+    """What every candidate of a scene's registration shares: the objects'
+    :class:`MatchableModel` and diameters (mm), the stage's parameters."""
+
+    models: Mapping[int, MatchableModel]
+    diameters: Mapping[int, float]
+    params: RegisterParams
+
+
+def _register_one(shared: _RegisterShared, item: _RegisterItem) -> tuple[list[dict[str, Any]], float]:
+    """A candidate's rows of register's table (one per hypothesis) and its time (s)."""
+    t0 = time.perf_counter()
+    row, obj_id = item.row, item.row["obj_id"]
+    res = coarse_hypotheses(shared.models[obj_id], item.points, item.geometric, item.visual, shared.diameters[obj_id],
+                            shared.params, item.seed)
+    dt = time.perf_counter() - t0
+    rows = []
+    for j, h in enumerate(res.hypotheses):
+        reg = h.registration
+        rows.append({**row, "hyp": j, "source": h.source, "source_rank": h.rank,
+                     "w_geometric": res.w_geometric, "w_visual": res.w_visual,
+                     "signal_geometric": res.signal_geometric, "signal_visual": res.signal_visual,
+                     "modalities_agree": res.agree,
+                     "R": _flat(reg.R, 9), "t": _flat(reg.t, 3), "n_inliers": int(reg.n_inliers),
+                     "inlier_ratio": float(reg.inlier_ratio), "fitness": float(reg.fitness),
+                     "n_correspondences": int(reg.n_correspondences), "time_s": dt if j == 0 else 0.0})
+    return rows, dt
 
 
 def pca_arrays(models: Mapping[int, MatchableModel]) -> dict[str, np.ndarray]:
@@ -564,6 +608,7 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
                       params: RefineParams, verify: Callable[..., Any] | None = None,
                       fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None,
                       progress: Progress = _noop, turns: Mapping[int, np.ndarray] | None = None,
+                      mapper: Mapper | None = None,
                       ) -> tuple[pd.DataFrame, pd.DataFrame, dict[int, float]]:
     """ICP and verification of every coarse hypothesis (register's rows with status
     ``ok``), and each candidate's best hypothesis.
@@ -588,102 +633,38 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     points; the fine pose replaces it (``fine_icp`` True) unless its verification score
     is lower.
 
+    mapper: where the candidates' hypotheses, and then the chosen poses' fine ICP, run
+    (:mod:`pipeline.parallel`; None: in this thread). With several threads, ``verify``
+    and ``fine`` must be per-thread (:class:`pipeline.parallel.PerThread`: a renderer
+    belongs to its thread). The candidates are independent and their rows come back in
+    their order, so the tables do not depend on the mapper.
+
     Returns the hypotheses (:data:`HYPOTHESIS_COLUMNS`, ``chosen`` marking each
     candidate's), the candidates (:data:`CANDIDATE_COLUMNS`: the chosen hypothesis'
     pose, ICP fitness and inlier_rmse (mm), evidence, verification terms) and the time
-    per image (s).
+    per image (s), the sum of its candidates' times.
     """
-    from pipeline.geometry.icp import refine_icp
-    from pipeline.registration.selection import RANK_COLUMNS, registration_evidence
-    from pipeline.registration.ransac import distinct_poses
-    from pipeline.registration.turns import turned
+    from pipeline.registration.selection import RANK_COLUMNS
 
     key = RANK_COLUMNS[params.select_by]
     if key == "verification" and verify is None:
         raise ValueError("refine: select_by 'verification' needs the verifier")
+    mapper = mapper or Mapper()
+    groups = [g for _, g in registered.groupby("cand_id", sort=False)]
+    objects = sorted({int(o) for o in registered.obj_id})
+    # Everything a candidate needs, so that a worker process can have it: the scene
+    # points of the candidates, the models (loaded here, once per object).
+    work = _RefineWork({int(g.cand_id.iloc[0]): scene_points(int(g.cand_id.iloc[0])) for g in groups},
+                       {o: model_of(o) for o in objects}, {o: diameters[o] for o in objects}, params, key,
+                       verify, fine, {o: turns[o] for o in objects if turns and o in turns})
     image_time: dict[int, float] = {}
-
-    def icp(ident: dict[str, Any], R: np.ndarray, t: np.ndarray, fitness: float, quick: bool = False) -> tuple:
-        """The hypothesis' pose and fit after ICP: (R, t, fitness, inlier_rmse mm);
-        ``quick``: only the coarsest correspondence distance, :data:`QUICK_ICP_ITERATIONS`
-        iterations."""
-        if not params.icp:
-            return R, t, fitness, float("nan")
-        m = model_of(ident["obj_id"])
-        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
-            {"iterations": params.iterations}
-        res = refine_icp(m["points"], m["normals"], scene_points(ident["cand_id"]), R, t, diameters[ident["obj_id"]],
-                         max_corr_dist_frac=params.max_corr_frac, point_to_plane=params.point_to_plane, **schedule)
-        return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
-
-    def verified(ident: dict[str, Any], pose: tuple, n_inliers: int, inlier_ratio: float) -> dict[str, Any]:
-        """One hypothesis after ICP (``pose``, from :func:`icp`) and verification, as a row
-        of hypotheses.parquet; ident: its cand_id, scene_id, im_id, obj_id, hyp, parent,
-        source, prior_score."""
-        R, t, fitness, rmse = pose
-        obj_id, im_id, cand_id = ident["obj_id"], ident["im_id"], ident["cand_id"]
-        evidence = registration_evidence(inlier_ratio, fitness)
-        terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
-        if verify is not None:
-            v = verify(im_id, cand_id, obj_id, R, t, diameters[obj_id], evidence)
-            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
-        return {**ident, "n_inliers": int(n_inliers), "inlier_ratio": float(inlier_ratio), "R": _flat(R, 9),
-                "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms}
-
-    def timed(im_id: int, t0: float) -> float:
-        dt = time.perf_counter() - t0
-        image_time[im_id] = image_time.get(im_id, 0.0) + dt
-        return dt
-
-    def best_of(rows: list[dict[str, Any]]) -> dict[str, Any]:
-        """The first of a candidate's rows by the ranking key, then the evidence, then hyp
-        (as the final choice below orders them)."""
-        def rank(r: dict[str, Any]) -> tuple:
-            v, e = r[key], r["evidence"]
-            return (bool(np.isnan(v)), 0.0 if np.isnan(v) else -v, 0.0 if np.isnan(e) else -e, r["hyp"])
-        return min(rows, key=rank)
-
-    def turned_rows(parent: dict[str, Any], first_hyp: int) -> list[dict[str, Any]]:
-        """The turns of ``parent``, each aligned by a quick ICP; the ``params.turns`` best
-        by that ICP's fitness refined by the full ICP and verified, numbered from
-        ``first_hyp``. (The full ICP from a turned start runs its whole schedule, about
-        7x the quick one, and a verification's render costs more than either: both are
-        kept for the few turns that fit.)"""
-        T = (turns or {}).get(parent["obj_id"])
-        if T is None or not len(T) or verify is None or params.turns <= 0:
-            return []
-        t0 = time.perf_counter()
-        ident = {k: parent[k] for k in ("cand_id", "scene_id", "im_id", "obj_id", "prior_score")}
-        ident |= {"parent": parent["hyp"], "source": "turn"}
-        R0, t0_ = np.reshape(parent["R"], (3, 3)), np.asarray(parent["t"], float)
-        quick = [icp(ident, *turned(R0, t0_, Ti), float("nan"), quick=True) for Ti in T]
-        order = np.argsort(-np.nan_to_num([q[2] for q in quick], nan=-1.0), kind="stable")
-        # Distinct from the parent and from each other (turns that slid to one pose are
-        # one hypothesis), as register keeps its hypotheses distinct.
-        keep = distinct_poses([(R0, t0_)] + [quick[j][:2] for j in order], params.turns + 1, 5.0,
-                              0.05 * diameters[parent["obj_id"]])
-        best = [order[i - 1] for i in keep if i > 0]
-        rows = [verified(ident | {"hyp": first_hyp + k}, icp(ident, *quick[j][:2], quick[j][2]), 0, 0.0)
-                for k, j in enumerate(best)]
-        dt = timed(parent["im_id"], t0)  # the quick ICPs count even when no turn is kept
-        for r in rows:
-            r["time_s"] = dt / len(rows)
-        return rows
-
     rows: list[dict[str, Any]] = []
-    for _, group in registered.groupby("cand_id", sort=False):
-        mine = []
-        for c in group.itertuples(index=False):
-            t0 = time.perf_counter()
-            ident = {"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id),
-                     "obj_id": int(c.obj_id), "hyp": int(c.hyp), "parent": -1, "source": str(c.source),
-                     "prior_score": float(c.prior_score)}
-            pose = icp(ident, np.asarray(c.R, float).reshape(3, 3), np.asarray(c.t, float), float(c.fitness))
-            mine.append(verified(ident, pose, int(c.n_inliers), float(c.inlier_ratio)))
-            mine[-1]["time_s"] = timed(ident["im_id"], t0)
-        mine += turned_rows(best_of(mine), max(r["hyp"] for r in mine) + 1)
+    with _icp_on_one_thread(mapper):
+        done = mapper.map(_refine_one, [g.to_dict("records") for g in groups], work, progress)
+    for g, (mine, dt) in zip(groups, done):
         rows += mine
-        progress()
+        im_id = int(g.im_id.iloc[0])
+        image_time[im_id] = image_time.get(im_id, 0.0) + dt
     hyps = pd.DataFrame(rows, columns=HYPOTHESIS_COLUMNS[:-1])
     order = hyps.sort_values(["cand_id", key, "evidence", "hyp"], ascending=[True, False, False, True],
                              na_position="last")
@@ -693,25 +674,174 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     cand_time = hyps.groupby("cand_id").time_s.sum()
     cands = cands.assign(time_s=cands.cand_id.map(cand_time).astype(float), fine_icp=False)
     if fine is not None:
-        for i in cands.index:
-            t0 = time.perf_counter()
-            c = cands.loc[i]
-            obj_id, im_id = int(c.obj_id), int(c.im_id)
-            pose = fine(im_id, int(c.cand_id), obj_id, np.reshape(c.R, (3, 3)), np.asarray(c.t), diameters[obj_id])
-            if pose is None:
-                continue
-            R, t = pose
-            v = verify(im_id, int(c.cand_id), obj_id, R, t, diameters[obj_id], float(c.evidence)) if verify else None
-            if v is None or v.score >= c.verification:
-                cands.at[i, "R"], cands.at[i, "t"], cands.at[i, "fine_icp"] = _flat(R, 9), _flat(t, 3), True
-                if v is not None:
-                    for k in VERIFICATION_COLUMNS[:-1]:
-                        cands.at[i, k] = getattr(v, k)
-                    cands.at[i, "verification"] = v.score
-            dt = time.perf_counter() - t0
+        chosen = [cands.loc[i, ["cand_id", "im_id", "obj_id", "R", "t", "evidence", "verification"]].to_dict()
+                  for i in cands.index]
+        with _icp_on_one_thread(mapper):
+            fined = mapper.map(_fine_one, chosen, work)
+        for i, (update, dt) in zip(cands.index, fined):
+            for k, v in update.items():
+                cands.at[i, k] = v
             cands.at[i, "time_s"] += dt
+            im_id = int(cands.at[i, "im_id"])
             image_time[im_id] = image_time.get(im_id, 0.0) + dt
     return hyps, cands[CANDIDATE_COLUMNS], image_time
+
+
+def _icp_on_one_thread(mapper: Mapper) -> Any:
+    """A context holding open3d at one thread while ``mapper`` runs ICPs on several
+    threads of this process: :func:`pipeline.geometry.icp.refine_icp` sets open3d's
+    process-wide thread count to 1 and restores it around each call, and two threads
+    doing so interleave (one restores the count while the other's ICP runs, whose sums
+    then vary from run to run: 1 of 84 hypotheses of a synthmini scene moved). Held
+    here, every call finds 1 and restores 1."""
+    from contextlib import nullcontext
+
+    if mapper.kind != "threads":
+        return nullcontext()
+    from pipeline.geometry.icp import _one_thread
+
+    return _one_thread()
+
+
+def _worker_icp_on_one_thread() -> None:
+    """The same for a cluster's worker process, whose threads run only these tasks:
+    open3d kept at one thread there for good (a no-op in this process's main thread)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        import open3d as o3d
+
+        if o3d.utility.get_max_threads() != 1:
+            o3d.utility.set_max_threads(1)
+
+
+@dataclass(frozen=True)
+class _RefineWork:
+    """What every candidate of a scene's refinement shares, and the work on one
+    candidate (:func:`_refine_one`, :func:`_fine_one`): points (cand_id -> (k, 3) mm),
+    models (obj_id -> ``points``, ``normals`` (N, 3)), diameters (mm), parameters, the
+    ranking column, the verifier, the fine ICP and the turns (obj_id -> (n, 4, 4))."""
+
+    points: Mapping[int, np.ndarray]
+    models: Mapping[int, Mapping[str, np.ndarray]]
+    diameters: Mapping[int, float]
+    params: RefineParams
+    key: str
+    verify: Callable[..., Any] | None
+    fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None
+    turns: Mapping[int, np.ndarray]
+
+    def icp(self, ident: dict[str, Any], R: np.ndarray, t: np.ndarray, fitness: float, quick: bool = False) -> tuple:
+        """The hypothesis' pose and fit after ICP: (R, t, fitness, inlier_rmse mm);
+        ``quick``: only the coarsest correspondence distance, :data:`QUICK_ICP_ITERATIONS`
+        iterations."""
+        from pipeline.geometry.icp import refine_icp
+
+        params = self.params
+        if not params.icp:
+            return R, t, fitness, float("nan")
+        m = self.models[ident["obj_id"]]
+        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
+            {"iterations": params.iterations}
+        res = refine_icp(m["points"], m["normals"], self.points[ident["cand_id"]], R, t,
+                         self.diameters[ident["obj_id"]], max_corr_dist_frac=params.max_corr_frac,
+                         point_to_plane=params.point_to_plane, **schedule)
+        return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
+
+    def verified(self, ident: dict[str, Any], pose: tuple, n_inliers: int, inlier_ratio: float) -> dict[str, Any]:
+        """One hypothesis after ICP (``pose``, from :meth:`icp`) and verification, as a row
+        of hypotheses.parquet; ident: its cand_id, scene_id, im_id, obj_id, hyp, parent,
+        source, prior_score."""
+        from pipeline.registration.selection import registration_evidence
+
+        R, t, fitness, rmse = pose
+        obj_id, im_id, cand_id = ident["obj_id"], ident["im_id"], ident["cand_id"]
+        evidence = registration_evidence(inlier_ratio, fitness)
+        terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
+        if self.verify is not None:
+            v = self.verify(im_id, cand_id, obj_id, R, t, self.diameters[obj_id], evidence)
+            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
+        return {**ident, "n_inliers": int(n_inliers), "inlier_ratio": float(inlier_ratio), "R": _flat(R, 9),
+                "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms}
+
+    def best_of(self, rows: list[dict[str, Any]]) -> dict[str, Any]:
+        """The first of a candidate's rows by the ranking key, then the evidence, then hyp
+        (as the final choice in :func:`refine_candidates` orders them)."""
+        def rank(r: dict[str, Any]) -> tuple:
+            v, e = r[self.key], r["evidence"]
+            return (bool(np.isnan(v)), 0.0 if np.isnan(v) else -v, 0.0 if np.isnan(e) else -e, r["hyp"])
+        return min(rows, key=rank)
+
+    def turned_rows(self, parent: dict[str, Any], first_hyp: int) -> tuple[list[dict[str, Any]], float]:
+        """The turns of ``parent``, each aligned by a quick ICP; the ``params.turns`` best
+        by that ICP's fitness refined by the full ICP and verified, numbered from
+        ``first_hyp``; and the time they took (s). (The full ICP from a turned start runs
+        its whole schedule, about 7x the quick one, and a verification's render costs
+        more than either: both are kept for the few turns that fit.)"""
+        from pipeline.registration.ransac import distinct_poses
+        from pipeline.registration.turns import turned
+
+        params = self.params
+        T = self.turns.get(parent["obj_id"])
+        if T is None or not len(T) or self.verify is None or params.turns <= 0:
+            return [], 0.0
+        t0 = time.perf_counter()
+        ident = {k: parent[k] for k in ("cand_id", "scene_id", "im_id", "obj_id", "prior_score")}
+        ident |= {"parent": parent["hyp"], "source": "turn"}
+        R0, t0_ = np.reshape(parent["R"], (3, 3)), np.asarray(parent["t"], float)
+        quick = [self.icp(ident, *turned(R0, t0_, Ti), float("nan"), quick=True) for Ti in T]
+        order = np.argsort(-np.nan_to_num([q[2] for q in quick], nan=-1.0), kind="stable")
+        # Distinct from the parent and from each other (turns that slid to one pose are
+        # one hypothesis), as register keeps its hypotheses distinct.
+        keep = distinct_poses([(R0, t0_)] + [quick[j][:2] for j in order], params.turns + 1, 5.0,
+                              0.05 * self.diameters[parent["obj_id"]])
+        best = [order[i - 1] for i in keep if i > 0]
+        rows = [self.verified(ident | {"hyp": first_hyp + k}, self.icp(ident, *quick[j][:2], quick[j][2]), 0, 0.0)
+                for k, j in enumerate(best)]
+        dt = time.perf_counter() - t0  # the quick ICPs count even when no turn is kept
+        for r in rows:
+            r["time_s"] = dt / len(rows)
+        return rows, dt
+
+
+def _refine_one(work: _RefineWork, group: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], float]:
+    """One candidate's hypotheses (register's rows ``group``) after ICP and verification,
+    with the turns of its best; and the candidate's time (s)."""
+    _worker_icp_on_one_thread()
+    mine, total = [], 0.0
+    for c in group:
+        t0 = time.perf_counter()
+        ident = {"cand_id": int(c["cand_id"]), "scene_id": int(c["scene_id"]), "im_id": int(c["im_id"]),
+                 "obj_id": int(c["obj_id"]), "hyp": int(c["hyp"]), "parent": -1, "source": str(c["source"]),
+                 "prior_score": float(c["prior_score"])}
+        pose = work.icp(ident, np.asarray(c["R"], float).reshape(3, 3), np.asarray(c["t"], float),
+                        float(c["fitness"]))
+        mine.append(work.verified(ident, pose, int(c["n_inliers"]), float(c["inlier_ratio"])))
+        mine[-1]["time_s"] = dt = time.perf_counter() - t0
+        total += dt
+    turned, dt = work.turned_rows(work.best_of(mine), max(r["hyp"] for r in mine) + 1)
+    return mine + turned, total + dt
+
+
+def _fine_one(work: _RefineWork, c: dict[str, Any]) -> tuple[dict[str, Any], float]:
+    """The fine ICP of a candidate's chosen pose ``c`` (cand_id, im_id, obj_id, R, t,
+    evidence, verification): the columns to update (none when the fine pose is not
+    kept) and its time (s, 0 for an object the fine ICP does not refine)."""
+    _worker_icp_on_one_thread()
+    t0 = time.perf_counter()
+    obj_id, im_id, cand_id = int(c["obj_id"]), int(c["im_id"]), int(c["cand_id"])
+    diameter = work.diameters[obj_id]
+    pose = work.fine(im_id, cand_id, obj_id, np.reshape(c["R"], (3, 3)), np.asarray(c["t"]), diameter)
+    if pose is None:  # an object the fine ICP leaves alone: no work counted
+        return {}, 0.0
+    R, t = pose
+    update: dict[str, Any] = {}
+    v = work.verify(im_id, cand_id, obj_id, R, t, diameter, float(c["evidence"])) if work.verify else None
+    if v is None or v.score >= c["verification"]:
+        update = {"R": _flat(R, 9), "t": _flat(t, 3), "fine_icp": True}
+        if v is not None:
+            update |= {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
+    return update, time.perf_counter() - t0
 
 
 def choose_estimates(refined: pd.DataFrame, targets: Sequence[Any], diameters: Mapping[int, float],

@@ -71,10 +71,13 @@ class StageSpec:
     side: ``model`` for the per-object onboarding stages, whose ``dataset`` key may be
     the models' own fingerprint (:attr:`pipeline.plan.DatasetPlan.models_key`).
     algorithm: where the stage's method lives, one import away from the stage module.
-    threads, mem_mb: what one job needs, the Snakemake rule's ``threads`` and
-    ``resources: mem_mb`` (a cluster profile may raise them per rule). The memory is
-    about twice the peak measured with the default encoders on the benchmarks (the
-    manifests' ``peak_rss_mb``), more where the foundation encoders run.
+    threads, mem_mb, runtime_min: what one job needs, the Snakemake rule's ``threads``
+    and ``resources: mem_mb, runtime`` (a cluster profile may raise them per rule). The
+    memory is about twice the peak measured with the default encoders on the benchmarks
+    (the manifests' ``peak_rss_mb``), more where the foundation encoders run. The wall
+    time (minutes, what a SLURM job asks for) leaves room for a real BOP scene of a few
+    hundred images in one job, or GeDi on CPU; ``images_per_job`` makes the scene-side
+    jobs shorter.
     """
 
     name: str
@@ -90,6 +93,7 @@ class StageSpec:
     module: str = field(default="")
     threads: int = 1
     mem_mb: int = 1500
+    runtime_min: int = 60
 
     def __post_init__(self) -> None:
         if not self.module:
@@ -118,35 +122,42 @@ _SPECS = (
     StageSpec(
         "synth", 1, ("dataset",), reads={"dataset": ("source",)}, writes={"dataset": ("{dataset}",)},
         keyed_by=("source",), algorithm="pipeline.synth.build_dataset", side="dataset", synthetic_only=True,
-        summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)", threads=1, mem_mb=2000),
+        summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)",
+        threads=1, mem_mb=2000, runtime_min=30),
     StageSpec(
         "render_templates", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("templates.zarr",)},
         keyed_by=("dataset",), algorithm="pipeline.render.templates.render_object_templates", side="model",
-        summary="R object-centred template views of one object", threads=1, mem_mb=1500),
+        summary="R object-centred template views of one object",
+        threads=1, mem_mb=1500, runtime_min=60),
     StageSpec(
         "symmetries", 2, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("symmetries.json",)},
         keyed_by=("dataset",), algorithm="pipeline.model_side.symmetry_record", side="model",
-        summary="the shape symmetries of one object", threads=1, mem_mb=1000),
+        summary="the shape symmetries of one object",
+        threads=1, mem_mb=1000, runtime_min=30),
     StageSpec(
         "model_features", 1, ("obj",), reads={"obj": ("render_templates", "dataset")},
         writes={"obj": ("features.zarr",)}, keyed_by=("render_templates",),
         algorithm="pipeline.model_side.model_features", side="model",
-        summary="geometric and lifted visual features of one object's sampled points", threads=2, mem_mb=4000),
+        summary="geometric and lifted visual features of one object's sampled points",
+        threads=2, mem_mb=4000, runtime_min=120),
     StageSpec(
         "segment_prior", 3, ("all",), reads={"all": ("dataset", "prior")}, writes={"all": ("candidates.parquet",)},
         keyed_by=("dataset", "prior"), algorithm="pipeline.segmentation.candidates_from_priors",
-        summary="candidate masks of every target from the localisation prior(s)", threads=1, mem_mb=1000),
+        summary="candidate masks of every target from the localisation prior(s)",
+        threads=1, mem_mb=1000, runtime_min=30),
     StageSpec(
         "scene_features", 1, ("scene",), reads={"scene": ("segment_prior", "dataset")},
         writes={"scene": ("features.zarr", "candidates.parquet", "images.parquet")},
         keyed_by=("segment_prior", "dataset"), algorithm="pipeline.scene_side.scene_features",
-        summary="lifted points and features of every candidate of one scene", threads=2, mem_mb=4000),
+        summary="lifted points and features of every candidate of one scene",
+        threads=2, mem_mb=4000, runtime_min=240),
     StageSpec(
-        "register", 4, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
+        "register", 5, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
         writes={"scene": ("candidates.parquet", "images.parquet", "pca.zarr")},
         keyed_by=("model_features", "scene_features"), algorithm="pipeline.scene_side.register_candidates",
         summary="coarse pose hypotheses of every candidate of one scene (RANSAC on weighted fused features and on "
-                "each modality's own)", threads=1, mem_mb=1500),
+                "each modality's own)",
+        threads=1, mem_mb=1500, runtime_min=240),
     StageSpec(
         "refine", 6, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
@@ -156,11 +167,13 @@ _SPECS = (
                 "all": ("{results_csv}",)},
         keyed_by=("register", "symmetries"), algorithm="pipeline.scene_side.refine_candidates",
         summary="ICP and verification of every hypothesis, the estimates chosen per target, SAR; item 'all': the BOP "
-                "results CSV", threads=1, mem_mb=2000),
+                "results CSV",
+        threads=1, mem_mb=2000, runtime_min=240),
     StageSpec(
         "score", 2, ("all",), reads={"all": ("refine", "dataset")}, writes={"all": ("errors.parquet", "scores.json")},
         keyed_by=("refine", "dataset"), algorithm="pipeline.metrics.score_results_file",
-        summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV", threads=1, mem_mb=2000),
+        summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV",
+        threads=1, mem_mb=2000, runtime_min=120),
 )
 
 STAGES: dict[str, StageSpec] = {s.name: s for s in _SPECS}

@@ -10,6 +10,7 @@ rule model_features:
     threads: STAGES["model_features"].threads
     resources:
         mem_mb=STAGES["model_features"].mem_mb,
+        runtime=STAGES["model_features"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/model_features/{{sig}}/obj_{{obj}}.log",
     shell:

@@ -32,10 +32,22 @@ produce all estimates of the image, excluding model onboarding; algorithm:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
 import pandas as pd
 
+from pipeline.parallel import PerThread
 from pipeline.plan import DatasetPlan, obj_item
 from pipeline.store import load_arrays, read_table, write_table
+
+THREADS_HELP = False
+"""Whether the candidates run on the job's threads when no dask scheduler is named: not by
+default, since two threads were not faster here (0.83x median, 0.76-2.17x paired,
+``benchmarks/results/dask.md``): Mesa's software rasteriser already spreads each
+verification render over the cores, and the rest holds the GIL often enough. A dask
+scheduler named by the run still gets the candidates (:func:`pipeline.parallel.job_mapper`)."""
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
@@ -47,8 +59,9 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.plan import build_encoders
     from pipeline.progress import progress_bar
     from pipeline.registration.turns import model_turns
-    from pipeline.scene_side import (POSE_COLUMNS, SAR_COLUMNS, FineIcp, PoseVerifier, SceneImages, choose_estimates,
-                                     refine_by_symmetry, refine_candidates, sar_transforms, time_table)
+    from pipeline.parallel import job_mapper
+    from pipeline.scene_side import (POSE_COLUMNS, SAR_COLUMNS, SceneImages, choose_estimates, refine_by_symmetry,
+                                     refine_candidates, sar_transforms, time_table)
 
     io = plan.io("refine", item)
     scene_id, p = io.item_id(), io.params
@@ -83,19 +96,26 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         mask = rle_decode({"counts": list(b.rle_counts), "size": [int(b.height), int(b.width)]})
         return (b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h), mask
 
-    images = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
-                         depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
-                         mesh=bop.load_model, candidate=candidate).keeping_last()
+    loaders = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
+                          depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
+                          mesh=bop.load_model, candidate=candidate)
+    images = loaders.keeping_last()
     objects = sorted(set(registered.obj_id.astype(int)))
+    for o in objects:  # loaded here once, before the candidates are spread over threads or workers
+        model_of(o)
     symmetries = {o: io.input_dir("symmetries", obj_item(o)) / "symmetries.json" for o in objects}
     found = {o: read_symmetries(path) for o, path in symmetries.items()}
     turns = {o: model_turns(read_near_symmetries(symmetries[o]), model_of(o)["points"], found[o], diameters[o])
              for o in objects} if p.turns else {}
+    fine_objects = {o for o in objects if found[o].is_trivial} if p.icp and p.fine_icp_points else None
     with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
-            PoseVerifier(images, p) as verify:
-        fine = FineIcp(images, p, {o for o in objects if found[o].is_trivial}) if p.icp and p.fine_icp_points else None
-        hypotheses, refined, image_time = refine_candidates(registered, scene_points, model_of, diameters, p, verify,
-                                                            fine, bar.advance, turns)
+            job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
+        # A verifier and a fine ICP per thread: a renderer belongs to the thread that made
+        # it, and the loaders that keep the last image are not shared between threads.
+        tools = mapper.per_thread(partial(_ThreadTools, loaders, p, fine_objects))
+        hypotheses, refined, image_time = refine_candidates(
+            registered, scene_points, models.__getitem__, diameters, p, _ThreadVerify(tools),
+            _ThreadFine(tools) if fine_objects is not None else None, bar.advance, turns, mapper)
     table, poses = choose_estimates(refined, targets, diameters, p)
     sar_rows: list[dict] = []
     if len(poses):
@@ -121,6 +141,41 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
             "n_sar": int((poses.sar_variant >= 0).sum()), "n_sar_changed": int((poses.sar_variant > 0).sum()),
             "targets_without_pose": len({(t.im_id, t.obj_id) for t in targets} - set(zip(poses.im_id, poses.obj_id))),
         })
+
+
+class _ThreadTools:
+    """One thread's verifier and fine ICP, sharing that thread's loaders (which keep the
+    last image and mask). ``fine_objects``: the objects the fine ICP refines (None: off)."""
+
+    def __init__(self, loaders: Any, params: Any, fine_objects: set[int] | None):
+        from pipeline.scene_side import FineIcp, PoseVerifier
+
+        images = loaders.keeping_last()
+        self.verify = PoseVerifier(images, params)
+        self.fine = FineIcp(images, params, fine_objects) if fine_objects is not None else None
+
+    def close(self) -> None:
+        self.verify.__exit__(None, None, None)
+
+
+@dataclass(frozen=True)
+class _ThreadVerify:
+    """The calling thread's verifier (picklable: a cluster's worker makes its own)."""
+
+    tools: PerThread
+
+    def __call__(self, *args: Any) -> Any:
+        return self.tools.get().verify(*args)
+
+
+@dataclass(frozen=True)
+class _ThreadFine:
+    """The calling thread's fine ICP (picklable: a cluster's worker makes its own)."""
+
+    tools: PerThread
+
+    def __call__(self, *args: Any) -> Any:
+        return self.tools.get().fine(*args)
 
 
 def _collect(plan: DatasetPlan) -> None:

@@ -10,6 +10,7 @@ rule refine:
     threads: STAGES["refine"].threads
     resources:
         mem_mb=STAGES["refine"].mem_mb,
+        runtime=STAGES["refine"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/refine/{{sig}}/scene_{{scene}}.log",
     shell:
@@ -28,6 +29,7 @@ rule refine_collect:
     threads: STAGES["refine"].threads
     resources:
         mem_mb=STAGES["refine"].mem_mb,
+        runtime=STAGES["refine"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/refine/{{sig}}/all.log",
     shell:

@@ -13,6 +13,9 @@ n_correspondences, time_s (the candidate's, on its first row).
 (K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual
 features carried no variance and the visual part was dropped); empty in geometry-only
 runs. Algorithm: :func:`pipeline.scene_side.register_candidates`.
+
+The candidates go to the dask cluster the run names (``dask_scheduler``, else
+``$DASK_SCHEDULER_ADDRESS``), else run in this process (:mod:`pipeline.parallel`).
 """
 
 from __future__ import annotations
@@ -20,8 +23,15 @@ from __future__ import annotations
 from pipeline.plan import DatasetPlan, obj_item
 from pipeline.store import load_arrays, read_table, save_arrays, write_table
 
+THREADS_HELP = True
+"""The candidates run on the job's threads (dask's threaded scheduler) when no dask scheduler is
+named: faster here (``benchmarks/results/dask.md``). Snakemake's rule gives the job one
+thread (``stage_graph``), so there they run one after the other; ``freeze stage``
+without ``--threads`` and ``freeze estimate`` use every core."""
+
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
+    from pipeline.parallel import job_mapper
     from pipeline.progress import progress_bar
     from pipeline.scene_side import matchable_model, pca_arrays, register_candidates, time_table
 
@@ -38,9 +48,11 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
             models[obj_id] = matchable_model(features, p.pca_dim)
         return models[obj_id]
 
-    with progress_bar(f"register {item}", total=len(cands), enabled=progress) as bar:
+    with progress_bar(f"register {item}", total=len(cands), enabled=progress) as bar, \
+            job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
         table, image_time = register_candidates(cands, scene, model_of, {o: i.diameter for o, i in infos.items()}, p,
-                                                lambda cand_id: io.candidate_seed(int(cand_id), p.seed), bar.advance)
+                                                lambda cand_id: io.candidate_seed(int(cand_id), p.seed), bar.advance,
+                                                mapper)
     with io.publish() as w:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
         write_table(time_table(scene_id, image_time), w.dir / "images.parquet", metadata={"key": io.out.key})

@@ -10,6 +10,7 @@ rule register:
     threads: STAGES["register"].threads
     resources:
         mem_mb=STAGES["register"].mem_mb,
+        runtime=STAGES["register"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/register/{{sig}}/scene_{{scene}}.log",
     shell:

@@ -9,6 +9,7 @@ rule render_templates:
     threads: STAGES["render_templates"].threads
     resources:
         mem_mb=STAGES["render_templates"].mem_mb,
+        runtime=STAGES["render_templates"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/render_templates/{{sig}}/obj_{{obj}}.log",
     shell:

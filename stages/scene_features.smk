@@ -10,6 +10,7 @@ rule scene_features:
     threads: STAGES["scene_features"].threads
     resources:
         mem_mb=STAGES["scene_features"].mem_mb,
+        runtime=STAGES["scene_features"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/scene_features/{{sig}}/scene_{{scene}}.log",
     shell:

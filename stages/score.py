@@ -14,6 +14,10 @@ A results CSV with an R that is not a rotation (:data:`pipeline.metrics.ROTATION
 fails the stage in both cases, with the message of ``freeze score`` (one line naming the
 file, the number of bad rows and the first one), and nothing is published: scoring it
 would give numbers that mean nothing, submitting it a rejected file.
+
+The images' errors go to the dask cluster the run names (``dask_scheduler``, else
+``$DASK_SCHEDULER_ADDRESS``), else to ``score.n_workers`` processes of this job
+(:mod:`pipeline.parallel`).
 """
 
 from __future__ import annotations
@@ -23,10 +27,17 @@ import json
 from pipeline.plan import DatasetPlan, missing_ground_truth
 from pipeline.store import read_manifest
 
+THREADS_HELP = True
+"""The images run on the job's threads (dask's threaded scheduler) when no dask scheduler is
+named: faster here (``benchmarks/results/dask.md``). Snakemake's rule gives the job one
+thread (``stage_graph``), so there they run one after the other; ``freeze stage``
+without ``--threads`` and ``freeze estimate`` use every core."""
+
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
     from pipeline.metrics import score_results_file
     from pipeline.metrics.evaluate import unscored_summary
+    from pipeline.parallel import job_mapper
 
     io = plan.io("score", item)
     csv = io.input_dir("refine") / plan.results_csv_name
@@ -40,10 +51,12 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
             (w.dir / "scores.json").write_text(json.dumps({"summary": summary}, indent=1) + "\n")
             w.summary.update(summary)
             return
-        scores = score_results_file(csv, plan.root, split=plan.dataset.split, split_type=plan.dataset.split_type,
-                                    targets_file=plan.root / plan.dataset.targets_file,
-                                    out_dir=w.dir, n_workers=io.params.n_workers, vsd_delta=plan.dataset.vsd_delta,
-                                    progress=progress)
+        run = getattr(plan, "run", None)  # (tests drive the stage with a stand-in plan that has none)
+        with job_mapper(run.dask_scheduler if run is not None else None, THREADS_HELP) as mapper:
+            scores = score_results_file(csv, plan.root, split=plan.dataset.split, split_type=plan.dataset.split_type,
+                                        targets_file=plan.root / plan.dataset.targets_file,
+                                        out_dir=w.dir, n_workers=io.params.n_workers,
+                                        vsd_delta=plan.dataset.vsd_delta, progress=progress, mapper=mapper)
         w.summary.update(scores.summary)
         # Why there were no estimates (refine's note) belongs next to the AR it explains.
         upstream_notes = read_manifest(io.input_dir("refine")).get("summary", {}).get("notes") or []

@@ -10,6 +10,7 @@ rule score:
     threads: STAGES["score"].threads
     resources:
         mem_mb=STAGES["score"].mem_mb,
+        runtime=STAGES["score"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/score/{{sig}}.log",
     shell:

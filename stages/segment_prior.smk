@@ -9,6 +9,7 @@ rule segment_prior:
     threads: STAGES["segment_prior"].threads
     resources:
         mem_mb=STAGES["segment_prior"].mem_mb,
+        runtime=STAGES["segment_prior"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/segment_prior/{{sig}}.log",
     shell:

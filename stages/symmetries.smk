@@ -9,6 +9,7 @@ rule symmetries:
     threads: STAGES["symmetries"].threads
     resources:
         mem_mb=STAGES["symmetries"].mem_mb,
+        runtime=STAGES["symmetries"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/symmetries/{{sig}}/obj_{{obj}}.log",
     shell:

@@ -7,6 +7,7 @@ rule synth:
     threads: STAGES["synth"].threads
     resources:
         mem_mb=STAGES["synth"].mem_mb,
+        runtime=STAGES["synth"].runtime_min,
     log:
         f"{LOGS}/{{ds}}/synth/{{sig}}.log",
     shell:

@@ -14,13 +14,15 @@ ROOT = Path(__file__).resolve().parent.parent
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
 
 
-def run_snakemake(workdir: Path, *args: str, dry: bool = False, datasets: str | None = "synthtiny") -> str:
+def run_snakemake(workdir: Path, *args: str, dry: bool = False, datasets: str | None = "synthtiny",
+                  targets: tuple[str, ...] = ("bop_all",)) -> str:
     """`snakemake bop_all --config datasets=synthtiny ARGS` in ``workdir`` (its cache in
     ``workdir/cache``); returns the output, failing the test on a non-zero exit.
-    ``datasets=None`` runs the run manifest's own datasets (the main job's synthmini)."""
+    ``datasets=None`` runs the run manifest's own datasets (the main job's synthmini);
+    ``targets``: other Snakemake targets (e.g. manifests of one stage) than bop_all."""
     env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}
     env.update(FREEZE_CACHE=str(workdir / "cache"), PYOPENGL_PLATFORM="egl", HF_HUB_OFFLINE="1")
-    cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "--cores", "2", "bop_all"]
+    cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "--directory", str(workdir), "--cores", "2", *targets]
     if dry:
         cmd.append("-n")
     config = ([f"datasets={datasets}"] if datasets else []) + list(args)
@@ -29,6 +31,21 @@ def run_snakemake(workdir: Path, *args: str, dry: bool = False, datasets: str | 
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-4000:]
     return out
+
+
+#: Session fixtures that run the pipeline: the tests using one run on the same worker.
+SHARED_RUNS = ("main_run", "tiny_run")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (`scripts/test.sh` runs `-n 2 --dist loadgroup`), a worker
+    takes whole groups: the tests sharing one of the :data:`SHARED_RUNS` form one group
+    (so each run happens once), and every other test goes with its module (so a
+    module's fixtures are built once)."""
+    for item in items:
+        names = set(getattr(item, "fixturenames", ()))
+        group = next((run for run in SHARED_RUNS if run in names), item.module.__name__)
+        item.add_marker(pytest.mark.xdist_group(group))
 
 
 @pytest.fixture(scope="session")

@@ -19,6 +19,7 @@ from pipeline import config as cfg
 from pipeline.plan import RunPlan
 from pipeline.synth.layouts import FIRST_TEST_SCENE, write_layout
 
+ROOT = Path(__file__).resolve().parent.parent
 CORE = ("lmo", "tless", "tudl", "icbin", "itodd", "hb", "ycbv")
 pytestmark = pytest.mark.slow  # every test uses `layouts`, which writes the seven layouts (~25 s)
 
@@ -202,7 +203,13 @@ def test_bop_all_on_itodd_and_tless_layouts(layouts, tmp_path):
     import zarr
 
     root, _, _ = layouts
-    out = run_snakemake(tmp_path, f"bop_root={root}", "datasets=itodd,tless")
+    # What is tested is the layouts' path through every stage, not accuracy: a lighter
+    # model side (fewer templates and model points) keeps the test short.
+    light = tmp_path / "light.yaml"
+    light.write_text(f"extends: {ROOT / 'manifests' / 'runs' / 'default.yaml'}\n"
+                     "stages:\n  render_templates: {n_views: 16}\n  model_features: {n_points: 2500, seed: 0}\n"
+                     "  symmetries: {n_points: 5000}\n")
+    out = run_snakemake(tmp_path, f"bop_root={root}", "datasets=itodd,tless", f"run={light}")
     assert "itodd: grey images" in out and "itodd: the test ground truth is private" in out
     table = (tmp_path / "results" / "ar_table.md").read_text()
     itodd_row = next(line for line in table.splitlines() if line.startswith("| itodd |"))
@@ -213,7 +220,8 @@ def test_bop_all_on_itodd_and_tless_layouts(layouts, tmp_path):
         csv = pd.read_csv(tmp_path / "results" / f"freeze_{name}-test.csv")
         assert len(csv) == 7 and set(csv.scene_id) == {FIRST_TEST_SCENE[name]}
         assert (tmp_path / "results" / f"report_{name}.html").is_file()
-    plan = RunPlan(cfg.load_run({"datasets": "itodd,tless", "bop_root": str(root)}), cache=tmp_path / "cache")
+    plan = RunPlan(cfg.load_run({"datasets": "itodd,tless", "bop_root": str(root), "run": str(light)}),
+                   cache=tmp_path / "cache")
     scores = json.loads((plan["itodd"]["score"].item_dir("all") / "scores.json").read_text())["summary"]
     assert scores["status"] == "no_ground_truth" and scores["AR"] is None and scores["n_estimates"] == 7
     for name, grey in (("itodd", True), ("tless", False)):

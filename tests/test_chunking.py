@@ -49,6 +49,7 @@ def _estimates(csv_path: Path) -> list[dict]:
         return [{k: v for k, v in row.items() if k != "time"} for row in csv.DictReader(f)]
 
 
+@pytest.mark.slow
 def test_a_scene_cut_into_one_image_jobs_gives_the_same_estimates_and_ar(tiny_run, tmp_path):
     work, _ = tiny_run
     before_csv = next((current_dir(work, "refine") / "all").glob("*.csv"))

@@ -49,12 +49,25 @@ def test_profile_is_yaml_and_names_existing_rules(name):
     assert cfg["executor"] == {"slurm": "slurm", "slurm-generic": "cluster-generic"}[name]
     rules = rule_names()
     assert {"synth", "scene_features", "refine", "refine_collect", "score", "bop_all"} <= rules
-    assert set(cfg["set-resources"]) <= rules, set(cfg["set-resources"]) - rules
-    # every rule gets a wall time and memory: its own entry or the defaults
+    assert set(cfg.get("set-resources") or {}) <= rules, set(cfg["set-resources"]) - rules
+    # the rules declare their own wall time and memory; the defaults cover the others
     assert int(cfg["default-resources"]["runtime"]) > 0 and int(cfg["default-resources"]["mem_mb"]) > 0
-    for rule in rules:
-        assert int(cfg["set-resources"].get(rule, {}).get("runtime", cfg["default-resources"]["runtime"])) > 0
     assert int(cfg["jobs"]) >= 1 and int(cfg["latency-wait"]) >= 5
+
+
+def test_every_stage_rule_declares_threads_memory_and_wall_time_from_its_stage():
+    """Each stage rule takes threads, mem_mb and runtime from its StageSpec (declared
+    once); bop_all runs where Snakemake runs (a local rule), not as a cluster job."""
+    from pipeline.stage_graph import STAGES
+
+    text = {f.stem: f.read_text() for f in sorted((ROOT / "stages").glob("*.smk"))}
+    for stage, spec in STAGES.items():
+        smk = text[stage]
+        assert f'threads: STAGES["{stage}"].threads' in smk
+        assert f'mem_mb=STAGES["{stage}"].mem_mb' in smk
+        assert f'runtime=STAGES["{stage}"].runtime_min' in smk
+        assert spec.threads >= 1 and spec.mem_mb >= 500 and 10 <= spec.runtime_min <= 24 * 60
+    assert re.search(r"^localrules:\s*\n\s+bop_all,", (ROOT / "Snakefile").read_text(), flags=re.M)
 
 
 def test_generic_profile_submits_with_sbatch_and_its_status_script_exists():
@@ -91,7 +104,7 @@ def test_snakemake_reads_both_profiles():
     out = eval(proc.stdout.strip().splitlines()[-1])  # noqa: S307 - our own repr
     slurm, generic = out[str(PROFILES["slurm"])], out[str(PROFILES["slurm-generic"])]
     assert slurm[0] == "slurm" and generic[0] == "cluster-generic"
-    assert "scene_features" in slurm[2] and "60" in slurm[3]
+    assert slurm[2] == [] and "60" in slurm[3]
     assert generic[4].endswith("scripts/slurm/status.py")
 
 
@@ -240,3 +253,72 @@ def test_compare_ignores_time_only(tmp_path):
     with pytest.raises(compare.Different, match="is missing"):
         compare.compare_runs(tmp_path / "a", tmp_path / "e", "synthtiny")
     assert compare.main([str(tmp_path / "a"), str(tmp_path / "c"), "--dataset", "synthtiny"]) == 1
+
+
+# ---------------------------------------------------------------- no sbatch here
+
+def test_missing_submitter_names_sbatch_only_for_slurm_executors(monkeypatch):
+    from pipeline import cluster_submit
+
+    monkeypatch.setattr(cluster_submit.shutil, "which", lambda cmd: None)
+    why = cluster_submit.missing_submitter("slurm", where="profile profiles/slurm")
+    assert why is not None and "`sbatch`" in why and "profile profiles/slurm" in why
+    generic = yaml.safe_load((PROFILES["slurm-generic"] / "config.yaml").read_text())["cluster-generic-submit-cmd"]
+    assert cluster_submit.missing_submitter("cluster-generic", generic) is not None
+    assert cluster_submit.missing_submitter("cluster-generic", "qsub -V") is None   # not a SLURM submit
+    assert cluster_submit.missing_submitter("local") is None
+    assert cluster_submit.missing_submitter(None) is None
+    monkeypatch.setattr(cluster_submit.shutil, "which", lambda cmd: f"/usr/bin/{cmd}")
+    assert cluster_submit.missing_submitter("slurm") is None
+
+
+def _path_without_sbatch(tmp_path: Path) -> str:
+    """This PATH with every program but ``sbatch`` (linked into one folder): the
+    machine as it would be without SLURM's client commands."""
+    folder = tmp_path / "bin"
+    folder.mkdir()
+    for d in os.environ.get("PATH", "").split(os.pathsep):
+        if not os.path.isdir(d):
+            continue
+        for entry in os.scandir(d):
+            target = folder / entry.name
+            if entry.name != "sbatch" and not target.exists() and os.access(entry.path, os.X_OK):
+                target.symlink_to(entry.path)
+    assert not (folder / "sbatch").exists()
+    return f"{Path(sys.executable).parent}:{folder}"
+
+
+@pytest.mark.parametrize("name", sorted(PROFILES))
+def test_freeze_run_with_a_slurm_profile_and_no_sbatch_says_so_in_one_line(tmp_path, name):
+    env = {**os.environ, "PATH": _path_without_sbatch(tmp_path), "FREEZE_CACHE": str(tmp_path / "cache")}
+    proc = subprocess.run([str(Path(sys.executable).parent / "freeze"), "run", "--profile", str(PROFILES[name]),
+                           "--directory", str(tmp_path / "work"), "-c", "datasets=synthtiny"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 1
+    lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if ln.strip()]
+    assert len(lines) == 1 and "sbatch" in lines[0] and "Traceback" not in proc.stderr, proc.stdout + proc.stderr
+    assert not (tmp_path / "cache").exists()   # nothing ran
+
+
+def test_freeze_run_refuses_a_profile_folder_without_config(tmp_path):
+    proc = subprocess.run([str(Path(sys.executable).parent / "freeze"), "run", "--profile", str(tmp_path),
+                           "-c", "datasets=synthtiny"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "no config.yaml" in proc.stdout + proc.stderr
+
+
+@pytest.mark.slow
+def test_plain_snakemake_with_the_generic_profile_and_no_sbatch_stops_before_any_job(tmp_path):
+    """The Snakefile's onstart asks the same check: exit 1, the one line, no job run and
+    no lock left behind."""
+    pytest.importorskip("snakemake_executor_plugin_cluster_generic")
+    work = tmp_path / "work"
+    env = {**os.environ, "PATH": _path_without_sbatch(tmp_path), "FREEZE_CACHE": str(tmp_path / "cache"),
+           "PYOPENGL_PLATFORM": "egl"}
+    env.pop("FREEZE_RUN_JSON", None)
+    proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-s", str(ROOT / "Snakefile"),
+                           "--directory", str(work), "--profile", str(PROFILES["slurm-generic"]), "bop_all",
+                           "--config", "datasets=synthtiny"], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert "error: the cluster-generic executor submits jobs with `sbatch`" in proc.stderr
+    assert not (tmp_path / "cache").exists()
+    assert not (work / ".snakemake" / "locks").exists() or not any((work / ".snakemake" / "locks").iterdir())

@@ -104,16 +104,16 @@ MAIN_JOB_KEYS = {
     "model_features": "ed46f2a57508857849305f0fa7847a1bb0ad85fe",
     "segment_prior": "cb98a60a90478c1373a838b74f1b032f44df3b57",
     "scene_features": "1fb7016d520a9e4c243b2714fd6d0fd53bc3c6e0",
-    "register": "82dda53c4ad3176fe7530337eb8a28baf40d69c6",
-    "refine": "bc1c6d25c9d7d67a67bbac48563815fe2a022e9a",
-    "score": "0cf32add72f4b8857995f83908e29fe38c0aa1a9",
+    "register": "94255dac2bdc93f8b69cd94ffa44e7c966436302",
+    "refine": "fb05338316c45dbfe0aeba7dcee8f30726855301",
+    "score": "c56d262fbdd64e14b480889502ca243e3d574663",
 }
 
 
 def test_main_job_keys_are_pinned():
     plan = RunPlan(cfg.load_run({}))["synthmini"]
     assert {s: sp.key for s, sp in plan.stages.items()} == MAIN_JOB_KEYS
-    assert plan["refine"].signature == "icp+sar-byverification-bc1c6d25"
+    assert plan["refine"].signature == "icp+sar-byverification-fb053383"
 
 
 def test_renamed_values_keep_their_keys():

@@ -13,6 +13,7 @@ from pipeline.registration.ransac import (
     feature_neighbours,
     kabsch,
     ransac_align,
+    ransac_hypotheses,
 )
 
 # --- fusion -----------------------------------------------------------------------
@@ -227,3 +228,98 @@ def test_select_estimates_keeps_distinct_instances_in_rank_order():
     assert sorted(by_fitness.index[by_fitness.selected]) == [2, 3, 4]
     with pytest.raises(ValueError, match="'by'"):
         select_estimates(cands, targets, diam, by="luck")
+
+
+# --- the batched RANSAC's parts (issue 15) ------------------------------------------
+
+
+def test_fit_triangles_matches_kabsch_on_noisy_and_mirrored_triples():
+    from pipeline.registration.ransac import fit_triangles
+
+    rng = np.random.default_rng(5)
+    B = 500
+    src = rng.normal(size=(B, 3, 3)) * 50
+    rots = np.stack([random_rotation(rng) for _ in range(B)])
+    # exact, slightly noisy and badly inconsistent triples; the last ones mirrored
+    noise = rng.choice([0.0, 1.0, 30.0], size=(B, 1, 1))
+    dst = np.einsum("bij,bkj->bki", rots, src) + rng.normal(size=(B, 1, 3)) * 100 + rng.normal(size=(B, 3, 3)) * noise
+    dst[-50:, :, 2] *= -1
+    R, t, res, ok = fit_triangles(src, dst)
+    assert ok.all()
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+    Rk, tk = kabsch(src, dst)
+
+    def sse(R, t):
+        return np.sum((np.einsum("bij,bkj->bki", R, src) + t[:, None] - dst) ** 2, axis=(1, 2))
+
+    # the same least-squares optimum (the rotation itself is not unique for flat triples
+    # only in degenerate cases), and the residual it reports is the largest of the three
+    np.testing.assert_allclose(sse(R, t), sse(Rk, tk), rtol=1e-9, atol=1e-8)
+    worst = np.sqrt(np.max(np.sum((np.einsum("bij,bkj->bki", R, src) + t[:, None] - dst) ** 2, axis=2), axis=1))
+    np.testing.assert_allclose(res, worst, atol=1e-8)
+    exact = noise[:-50, 0, 0] == 0
+    np.testing.assert_allclose(R[:-50][exact], rots[:-50][exact], atol=1e-9)
+    # collinear triples are flagged, not fitted
+    line = np.array([[[0.0, 0, 0], [1, 1, 1], [2, 2, 2]]])
+    assert not fit_triangles(line, line)[3][0]
+
+
+def test_squared_residuals_expansion_matches_direct():
+    from pipeline.registration.ransac import _score_terms, _squared_residuals
+
+    rng = np.random.default_rng(6)
+    src, dst = rng.normal(size=(400, 3)) * 40, rng.normal(size=(400, 3)) * 40
+    R = np.stack([random_rotation(i) for i in range(7)])
+    t = rng.normal(size=(7, 3)) * 30
+    direct = np.sum((np.einsum("bij,cj->bci", R, src) + t[:, None] - dst[None]) ** 2, axis=2)
+    np.testing.assert_allclose(_squared_residuals(R, t, _score_terms(src, dst)), direct, rtol=1e-9, atol=1e-8)
+
+
+def test_feature_neighbours_top1_matches_brute_force():
+    rng = np.random.default_rng(7)
+    q, r = rng.normal(size=(600, 24)), rng.normal(size=(900, 24))
+    d = np.linalg.norm(q[:, None] - r[None], axis=2)
+    np.testing.assert_array_equal(feature_neighbours(q, r, k=1)[:, 0], np.argmin(d, axis=1))
+
+
+def test_batched_ransac_recovers_a_known_transform_from_correspondences_with_outliers():
+    """Correspondences given directly: 12 % consistent with a known pose (0.3 mm noise),
+    the rest random pairs. The winner is the pose; its count is the consistent pairs
+    (plus rare lucky outliers); the winner does not depend on the pool size and a seed
+    gives the same answer twice."""
+    from pipeline.registration.ransac import _ransac_numpy
+
+    rng = np.random.default_rng(8)
+    C, n_good = 1500, 180
+    src = rng.normal(size=(C, 3)) * [60, 40, 25]
+    R, t = random_rotation(rng), np.array([-30.0, 15.0, 700.0])
+    dst = rng.normal(size=(C, 3)) * [60, 40, 25] + t  # outliers: unrelated points in the same volume
+    dst[:n_good] = src[:n_good] @ R.T + t + rng.normal(scale=0.3, size=(n_good, 3))
+    perm = rng.permutation(C)
+    src, dst = src[perm], dst[perm]
+    params = RansacParams(max_iterations=20000)
+    found = _ransac_numpy(src, dst, 3.0, params, np.random.default_rng(0), pool=8)
+    count, Re, te = found[0]
+    assert rotation_angle_deg(Re, R) < 1.0 and np.linalg.norm(te - t) < 2.0
+    assert n_good - 5 <= count <= n_good + 10
+    assert [c for c, _, _ in found] == sorted((c for c, _, _ in found), reverse=True)
+    alone = _ransac_numpy(src, dst, 3.0, params, np.random.default_rng(0), pool=1)
+    np.testing.assert_array_equal(alone[0][1], Re)
+    again = _ransac_numpy(src, dst, 3.0, params, np.random.default_rng(0), pool=8)
+    for (c1, R1, t1), (c2, R2, t2) in zip(found, again):
+        assert c1 == c2
+        np.testing.assert_array_equal(R1, R2)
+        np.testing.assert_array_equal(t1, t2)
+
+
+@pytest.mark.parametrize("score", ["fitness", "inliers"])
+def test_ransac_hypotheses_scores_recover_the_pose(score):
+    model, mf, scene, sf, R, t, n_good = _synthetic_problem(4, inlier_share=0.12)
+    params = RansacParams(inlier_frac=0.02, score=score)
+    hyps = ransac_hypotheses(model, mf, scene, sf, 250.0, params=params, seed=3, k=3)
+    assert rotation_angle_deg(hyps[0].R, R) < 0.5 and np.linalg.norm(hyps[0].t - t) < 1.0
+    assert hyps[0].fitness > 0.99 and n_good <= hyps[0].n_inliers <= n_good + 10
+    assert len(hyps) >= 2  # runners-up, distinct from the winner
+    assert all(rotation_angle_deg(h.R, hyps[0].R) > 30 or np.linalg.norm(h.t - hyps[0].t) > 50 for h in hyps[1:])
+    first = ransac_align(model, mf, scene, sf, 250.0, params=params, seed=3)
+    np.testing.assert_array_equal(first.R, hyps[0].R)

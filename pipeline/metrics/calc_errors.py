@@ -3,7 +3,9 @@
 An :class:`ImageJob` is plain data (poses, ids, intrinsics), so jobs can be sent to
 worker processes; each process holds one :class:`ErrorCalculator` that loads the
 ``models_eval`` meshes it needs and its own renderer (EGL contexts must not cross a
-``fork``, so workers are started with ``spawn``).
+``fork``, so workers are started with ``spawn``). The images can also be mapped over
+threads or a dask cluster (:class:`ErrorWork`, :func:`image_errors_task`), each thread
+with its own calculator.
 """
 
 from __future__ import annotations
@@ -315,6 +317,29 @@ def init_worker(root: str, split: str, split_type: str | None, params: ErrorPara
     """Pool initializer: one dataset reader and calculator per worker process."""
     global _WORKER
     _WORKER = ErrorCalculator(BopDataset(Path(root), split, split_type), params)
+
+
+@dataclass(frozen=True)
+class ErrorWork:
+    """What every image shares when the images are mapped over threads or a dask
+    cluster (:mod:`pipeline.parallel`): one :class:`ErrorCalculator` per thread, made
+    on first use from the dataset (root, split, split type) and the parameters. A
+    calculator renders on its own EGL context, which belongs to its thread."""
+
+    calculators: Any  # PerThread[ErrorCalculator]
+
+    @staticmethod
+    def make_calculator(root: str, split: str, split_type: str | None, params: ErrorParams) -> ErrorCalculator:
+        return ErrorCalculator(BopDataset(Path(root), split, split_type), params)
+
+
+def image_errors_task(work: ErrorWork, job: ImageJob) -> tuple[list[dict], dict[str, float]]:
+    """Mapped task: the error rows of one image, and the time this thread spent on it per
+    part (the calculator's timing accumulates over the images of its thread)."""
+    calc = work.calculators.get()
+    before = dict(calc.timing)
+    rows = calc.image_errors(job)
+    return rows, {k: v - before.get(k, 0.0) for k, v in calc.timing.items()}
 
 
 def run_jobs(jobs: list[ImageJob]) -> tuple[list[dict], dict[str, float]]:

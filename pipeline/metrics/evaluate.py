@@ -37,7 +37,8 @@ import pandas as pd
 from pipeline.bop import BopDataset, BopFormatError, Target, read_results_csv
 from pipeline.store import atomic_path
 
-from .calc_errors import ErrorCalculator, ErrorParams, ImageJob, eval_models_info, init_worker, run_jobs
+from .calc_errors import (ErrorCalculator, ErrorParams, ErrorWork, ImageJob, eval_models_info, image_errors_task,
+                          init_worker, run_jobs)
 from .matching import greedy_match, valid_gt_mask
 from .bop_symmetries import DEFAULT_MAX_SYM_DISC_STEP
 from .vsd import VSD_TAUS
@@ -313,9 +314,12 @@ def _chunks(items: list, n: int) -> list[list]:
 
 
 def _compute_errors(
-    dataset: BopDataset, jobs: list[ImageJob], params: ErrorParams, n_workers: int, progress: bool
+    dataset: BopDataset, jobs: list[ImageJob], params: ErrorParams, n_workers: int, progress: bool,
+    mapper: Any = None,
 ) -> tuple[list[dict], dict[str, float]]:
-    """Error rows of all jobs, and the seconds per part summed over the processes."""
+    """Error rows of all jobs, and the seconds per part summed over the processes (or
+    threads). mapper: a :class:`pipeline.parallel.Mapper` on threads or a dask cluster,
+    used instead of ``n_workers`` processes when it is not serial."""
     rows: list[dict] = []
     timing: dict[str, float] = {}
 
@@ -331,7 +335,18 @@ def _compute_errors(
         bar.start()
         task = bar.add_task("pose errors", total=len(jobs))
     try:
-        if n_workers <= 1 or len(jobs) <= 1:
+        if mapper is not None and mapper.kind != "serial" and len(jobs) > 1:
+            from functools import partial
+
+            # One calculator per thread (its EGL context is bound to the thread); the
+            # rows come back in the jobs' order, as from the pool below.
+            work = ErrorWork(mapper.per_thread(partial(ErrorWork.make_calculator, str(dataset.root), dataset.split,
+                                                       dataset.split_type, params)))
+            for part, part_time in mapper.map(image_errors_task, jobs, work,
+                                              (lambda: bar.advance(task)) if bar is not None else None):
+                rows.extend(part)
+                add(part_time)
+        elif n_workers <= 1 or len(jobs) <= 1:
             calc = ErrorCalculator(dataset, params)
             try:
                 for job in jobs:
@@ -546,6 +561,7 @@ def evaluate(
     visib_gt_min: float = -1.0,
     max_sym_disc_step: float = DEFAULT_MAX_SYM_DISC_STEP,
     source: str | Path = "results",
+    mapper: Any = None,
 ) -> Scores:
     """Score pose estimates with the BOP19 metrics.
 
@@ -558,6 +574,9 @@ def evaluate(
     visib_gt_min: which GT instances are valid targets (see ``matching.valid_gt_mask``;
       the default -1 is the toolkit's BOP19 rule).
     source: what error messages about ``results`` name first (the results file).
+    mapper: a :class:`pipeline.parallel.Mapper` over threads or a dask cluster that the
+      images go to, one task each, instead of ``n_workers`` processes (None or serial:
+      ``n_workers`` decides). The errors are the same either way.
 
     Raises ValueError on a malformed row and :class:`NotARotationError` when an R is not
     a rotation within :data:`ROTATION_TOLERANCE` (:func:`check_rotations`).
@@ -595,7 +614,7 @@ def evaluate(
     jobs = _image_jobs(dataset, ests)
     t_prepare = _time.perf_counter() - t_start
     t_err = _time.perf_counter()
-    rows, timing = _compute_errors(dataset, jobs, params, n_workers, progress)
+    rows, timing = _compute_errors(dataset, jobs, params, n_workers, progress, mapper)
     t_err = _time.perf_counter() - t_err
     t_match = _time.perf_counter()
     errors = _errors_frame(rows, taus)
@@ -628,10 +647,17 @@ def evaluate(
         "n_target_images": len(target_images),
         "eval_seconds": round(_time.perf_counter() - t_start, 3),
         "error_seconds": round(t_err, 3),
-        "timing": _timing_summary(timing, t_prepare, t_match, t_err, n_workers if len(jobs) > 1 else 1),
+        "timing": _timing_summary(timing, t_prepare, t_match, t_err, _workers_used(n_workers, mapper, len(jobs))),
         "notes": notes,
     }
     return Scores(summary, errors, per_object, recalls, per_visibility)
+
+
+def _workers_used(n_workers: int, mapper: Any, n_jobs: int) -> int:
+    """How many processes or threads computed the errors (see :func:`_compute_errors`)."""
+    if n_jobs <= 1:
+        return 1
+    return mapper.workers if mapper is not None and mapper.kind != "serial" else n_workers
 
 
 def _timing_summary(parts: dict[str, float], prepare: float, match: float, errors_wall: float, n_workers: int) -> dict[str, Any]:
@@ -684,6 +710,7 @@ def score_results_file(
     split_type: str | None = None,
     vsd_delta: float | None = None,
     progress: bool = False,
+    mapper: Any = None,
 ) -> Scores:
     """Score a BOP results CSV against a dataset folder; optionally write the outputs.
 
@@ -692,6 +719,7 @@ def score_results_file(
     vsd_delta: default the BOP value for the dataset (folder) name.
     out_dir: when given, ``errors.parquet`` and ``scores.json`` are written there,
     each atomically, with the mode the umask gives a new file (0644 under umask 022).
+    mapper: where the images' errors are computed (see :func:`evaluate`).
 
     Raises ``BopFormatError`` naming the file: a malformed line, or
     :class:`NotARotationError` when an estimate's R is not a rotation
@@ -713,6 +741,7 @@ def score_results_file(
         n_workers=n_workers,
         progress=progress,
         source=results_csv,
+        mapper=mapper,
     )
     scores.summary["results_file"] = str(results_csv)
     scores.summary["dataset"] = str(dataset_root)

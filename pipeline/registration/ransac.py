@@ -2,18 +2,33 @@
 
 Correspondences pair each scene point with its nearest model point(s) in feature space
 (optionally only mutual nearest neighbours). RANSAC draws 3 correspondences, rejects
-samples whose pairwise edge lengths disagree between model and scene, fits a rigid
-transform (Kabsch), and keeps the hypothesis with the most correspondences closer than
-``inlier_frac * diameter`` after the transform; the winner is refitted on its inliers.
+samples whose pairwise edge lengths disagree between model and scene (or that are
+collinear), fits a rigid transform (closed form for 3 points, :func:`fit_triangles`),
+rejects fits that leave one of their own 3 points farther than the threshold
+``inlier_frac * diameter``, and counts each survivor's feature inliers (correspondences
+within the threshold after the transform). The stopping rule follows the most feature
+inliers. With ``score="fitness"`` (default) the ``rescore_pool`` hypotheses with the
+most feature inliers are then ranked by geometric fitness (the share of scene points with
+a model point within the threshold, on ``fitness_points`` of them) plus inlier ratio
+(feature inliers / correspondences); the best distinct ones are refitted on their
+inliers and ranked again by fitness (on every scene point) plus inlier ratio. With
+``score="inliers"`` (before issue 15) the most feature inliers win.
 
-Two backends: ``"numpy"`` (default), a vectorised implementation that evaluates
-hypotheses in batches of ``batch_size`` and is reproducible for a seed by construction
-(one numpy Generator); and ``"open3d"`` (``registration_ransac_based_on_correspondence``
-with edge-length and distance checkers, seeded through ``o3d.utility.random.seed``;
-repeated runs agreed in our tests, but it is multi-threaded and does not document
-determinism). On the synthetic benchmark (benchmarks/registration.py, FPFH only,
-3 objects x 3 radius sets x 10 views) numpy recovered 57/90 poses vs 54/90 for open3d,
-at similar speed (~50-150 ms for 1000 scene vs 5000 model points).
+Why: on the registration benchmark's views (benchmarks/coarse_vs_open3d.py), the pose
+with the most feature inliers was often wrong where the true pose had fewer feature
+inliers but explained every scene point (FPFH alone: 21/30 and 15/30 coarse poses within
+0.1 d ADD, normal and hard views; with fitness: 24/30 and 18/30; Open3D's
+feature-matching RANSAC, which ranks by fitness alone, 24/30 and 16/30). Fitness alone
+is blind on a blob-like shape, where many wrong poses fit about as well: there the
+feature inliers decide (tests/test_hypotheses.py, coherent but wrong matches).
+
+Two backends: ``"numpy"`` (default), batches of ``batch_size`` samples with no Python
+loop over samples (inliers of all a batch's hypotheses as one matrix product,
+:func:`_squared_residuals`), reproducible for a seed by construction (one numpy
+Generator); and ``"open3d"`` (``registration_ransac_based_on_correspondence`` with
+edge-length and distance checkers, seeded through ``o3d.utility.random.seed``; repeated
+runs agreed in our tests, but it is multi-threaded and does not document determinism;
+it gives the winner only). Speed against Open3D: benchmarks/results/coarse_registration.md.
 
 Scores are comparable between candidates (e.g. several masks) of one object with the
 same number of scene points: ``n_inliers`` always counts, among the M top-1 scene ->
@@ -45,6 +60,15 @@ class RansacParams(BaseModel):
         best inlier ratio ``w`` makes ``log(1-confidence)/log(1-w^3)`` hypotheses enough.
     refine_iterations: Kabsch refits of the winner on its inliers.
     batch_size: hypotheses evaluated together (numpy backend).
+    score: how the numpy backend ranks its hypotheses. ``"fitness"``: the
+        ``rescore_pool`` hypotheses with the most feature inliers are ranked by geometric
+        fitness (the share of ``fitness_points`` scene points with a model point within
+        the threshold, as Open3D's RANSAC scores) plus inlier ratio; ``"inliers"``: by
+        feature inliers alone (before issue 15).
+    rescore_pool / fitness_points: see ``score``.
+    final_candidates: with ``score="fitness"``, the best distinct hypotheses (at least
+        k) refitted on their inliers and ranked again by fitness (every scene point) plus
+        inlier ratio.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -58,6 +82,10 @@ class RansacParams(BaseModel):
     confidence: float = Field(0.999, gt=0, lt=1)
     refine_iterations: int = Field(3, ge=0)
     batch_size: int = Field(1000, ge=1)
+    score: Literal["fitness", "inliers"] = "fitness"
+    rescore_pool: int = Field(32, ge=1)
+    fitness_points: int = Field(128, ge=1)
+    final_candidates: int = Field(4, ge=1)
     backend: Literal["numpy", "open3d"] = "numpy"
 
 
@@ -89,11 +117,22 @@ def feature_neighbours(query: np.ndarray, reference: np.ndarray, k: int = 1) -> 
         raise ValueError(f"feature_neighbours: feature dims differ: {q.shape} vs {r.shape}")
     k = min(k, len(r))
     r_sq = np.sum(r * r, axis=1)
+    rt = np.ascontiguousarray(r.T)
     out = np.empty((len(q), k), dtype=np.int64)
-    block = 2048
+    # Few, large matrix products (up to 8M distances, 32 MB, per block), updated in place
+    # rather than through temporaries: with 2 OpenBLAS threads on cores busy with other
+    # work, blocks of 256 queries took 68 ms for 1000 x 5000 x 96 and blocks of 1024,
+    # 33-36 ms (one thread: 23-26 ms either way).
+    block = max(64, min(2048, 8_000_000 // max(len(r), 1)))
     for s in range(0, len(q), block):
         # |q - r|^2 up to the per-query constant |q|^2, which does not change the order.
-        d = r_sq[None, :] - 2.0 * (q[s : s + block] @ r.T)
+        d = q[s : s + block] @ rt
+        d *= -2.0
+        d += r_sq
+        if k == 1:
+            # argmin is a single pass; argpartition was 30x slower for the same answer.
+            out[s : s + block, 0] = np.argmin(d, axis=1)
+            continue
         part = np.argpartition(d, k - 1, axis=1)[:, :k] if k < len(r) else np.tile(np.arange(len(r)), (len(d), 1))
         order = np.take_along_axis(d, part, axis=1).argsort(axis=1, kind="stable")
         out[s : s + block] = np.take_along_axis(part, order, axis=1)
@@ -147,44 +186,164 @@ def _needed_iterations(inlier_ratio: float, confidence: float, n: int = 3) -> fl
     return math.log(1.0 - confidence) / math.log(1.0 - p)
 
 
+_EDGES = np.array([[0, 1], [1, 2], [2, 0]])
+
+
+def _triangle_frames(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal frames of B triangles p (B, 3, 3): e1 along the edge p0 -> p1, n the
+    normal (p1 - p0) x (p2 - p0), e2 = n x e1, each (B, 3); and a mask (B,) of the
+    triangles that have a normal (not degenerate)."""
+    u, w = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    n = np.cross(u, w)
+    nu, nn = np.linalg.norm(u, axis=1), np.linalg.norm(n, axis=1)
+    # |u x w| = |u| |w| sin(angle): below 1e-9 the three points are collinear to rounding.
+    ok = nn > 1e-9 * nu * np.linalg.norm(w, axis=1)
+    e1 = u / np.where(ok, nu, 1.0)[:, None]
+    n = n / np.where(ok, nn, 1.0)[:, None]
+    return e1, np.cross(n, e1), n, ok
+
+
+def fit_triangles(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares rigid transforms ``dst ~ R @ src + t`` of B point triples.
+
+    src, dst (B, 3, 3) float64 (triple, point, xyz), mm. Returns R (B, 3, 3), t (B, 3),
+    the largest residual of the three points (B,) mm, and a mask (B,) of the triples
+    that are not degenerate (collinear; their R is meaningless). Same optimum as
+    :func:`kabsch` but in closed form, without a batched SVD: centred, three points lie
+    in a plane, so the best rotation takes the source plane onto the target plane (its
+    normal onto the normal, or onto the opposite normal, whichever fits better) and then
+    turns it in the plane by the 2D Procrustes angle.
+    """
+    cs, cd = src.mean(axis=1), dst.mean(axis=1)
+    a, b = src - cs[:, None], dst - cd[:, None]
+    e1s, e2s, ns, oks = _triangle_frames(src)
+    e1d, e2d, nd, okd = _triangle_frames(dst)
+    # In-plane coordinates (B, 3) of the centred points in their own triangle's frame.
+    x, y = np.einsum("bki,bi->bk", a, e1s), np.einsum("bki,bi->bk", a, e2s)
+    u, v = np.einsum("bki,bi->bk", b, e1d), np.einsum("bki,bi->bk", b, e2d)
+    # sum_k b_k . R a_k = c * C + s * S for a turn by (c, s) = (cos, sin): maximal at
+    # (C, S) / hypot(C, S). The mirrored target frame (v -> -v, n -> -n) is also a
+    # proper rotation of the source frame onto the target plane.
+    C1, S1 = np.sum(u * x + v * y, axis=1), np.sum(v * x - u * y, axis=1)
+    C2, S2 = np.sum(u * x - v * y, axis=1), np.sum(-v * x - u * y, axis=1)
+    h1, h2 = np.hypot(C1, S1), np.hypot(C2, S2)
+    mirror = h2 > h1
+    sign = np.where(mirror, -1.0, 1.0)
+    C, S, h = np.where(mirror, C2, C1), np.where(mirror, S2, S1), np.maximum(h1, h2)
+    c = np.where(h > 0, C / np.where(h > 0, h, 1.0), 1.0)
+    s = np.where(h > 0, S / np.where(h > 0, h, 1.0), 0.0)
+    e2d, nd = e2d * sign[:, None], nd * sign[:, None]
+    # R = Fd Rz(angle) Fs^T with F = [e1 e2 n] as columns, written out.
+    outer = lambda p, q: p[:, :, None] * q[:, None, :]  # noqa: E731
+    R = (c[:, None, None] * (outer(e1d, e1s) + outer(e2d, e2s))
+         + s[:, None, None] * (outer(e2d, e1s) - outer(e1d, e2s)) + outer(nd, ns))
+    t = cd - np.einsum("bij,bj->bi", R, cs)
+    # Residuals in the plane: (u, +-v) against the turned (x, y); both triangles are flat.
+    vs = v * sign[:, None]
+    res2 = (u - (c[:, None] * x - s[:, None] * y)) ** 2 + (vs - (s[:, None] * x + c[:, None] * y)) ** 2
+    return R, t, np.sqrt(np.max(res2, axis=1)), oks & okd
+
+
+def _score_terms(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(17, C) per-correspondence terms of |R s + t - d|^2 for :func:`_squared_residuals`."""
+    sd = (dst[:, :, None] * src[:, None, :]).reshape(-1, 9)  # d_i s_j, row-major (i, j)
+    one = np.ones((len(src), 1))
+    sq = np.sum(src * src, axis=1, keepdims=True) + np.sum(dst * dst, axis=1, keepdims=True)
+    return np.ascontiguousarray(np.concatenate([sd, src, dst, one, sq], axis=1).T)
+
+
+def _squared_residuals(R: np.ndarray, t: np.ndarray, terms: np.ndarray) -> np.ndarray:
+    """|R_b s_c + t_b - d_c|^2 (B, C) of B transforms R (B, 3, 3), t (B, 3) over the
+    correspondences of ``terms`` (:func:`_score_terms`), as one matrix product:
+    |s|^2 + |d|^2 + |t|^2 + 2 (R^T t).s - 2 t.d - 2 sum_ij R_ij d_i s_j.
+    The coordinates should be centred (small magnitudes) for the expansion to stay
+    accurate; in float64 at object scale its error is far below a threshold squared."""
+    B = len(R)
+    coef = np.empty((B, 17))
+    coef[:, :9] = -2.0 * R.reshape(B, 9)
+    coef[:, 9:12] = 2.0 * np.einsum("bji,bj->bi", R, t)
+    coef[:, 12:15] = -2.0 * t
+    coef[:, 15] = np.sum(t * t, axis=1)
+    coef[:, 16] = 1.0
+    # einsum, not BLAS: a product this small ran 100x slower with 2 OpenBLAS threads on
+    # busy cores (22 ms vs 0.2 ms) and gains nothing from threads on idle ones.
+    return np.einsum("bk,kc->bc", coef, terms)
+
+
 def _ransac_numpy(
     src: np.ndarray, dst: np.ndarray, thr: float, params: RansacParams, rng: np.random.Generator, pool: int = 1
 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """The best hypotheses (count, R, t) with dst ~ R src + t over correspondences src,
-    dst (C, 3), most inliers first: the winner, then up to ``pool - 1`` runners-up (the
-    best of each batch). The sampling and the stopping rule depend on the winner only,
-    so the winner is the same whatever ``pool``."""
+    """The ``pool`` hypotheses (count, R, t) with the most inliers, dst ~ R src + t over
+    correspondences src, dst (C, 3) mm, most inliers first (ties: the earlier sample);
+    the first is RANSAC's winner. The sampling and the stopping rule depend on the winner
+    only, so the winner is the same whatever ``pool``.
+
+    Per batch of ``batch_size`` samples, without a Python loop over samples: draw the
+    triples, reject those whose edge lengths disagree (``edge_length_ratio``) or that
+    are collinear, fit the survivors in closed form (:func:`fit_triangles`), reject
+    those that do not bring their own three points within ``thr`` (Open3D's distance
+    checker: such a pose cannot be the one that explains the sample), and count the
+    inliers of the rest over all C correspondences with one matrix product
+    (:func:`_squared_residuals`).
+    """
     C = len(src)
-    best_count, best = -1, (np.eye(3), np.zeros(3))
-    kept: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (count, order, R, t)
+    # Centre both sides: the residual expansion then works on small numbers; poses are
+    # mapped back at the end (t = t_c + md - R ms).
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    src, dst = src - ms, dst - md
+    terms = _score_terms(src, dst)
+    # The pool: the best hypotheses so far, with the index of their sample (tie-break).
+    p_count = np.full(1, -1, dtype=np.int64)
+    p_order = np.zeros(1, dtype=np.int64)
+    p_R, p_t = np.eye(3)[None], np.zeros((1, 3))
     done, needed = 0, math.inf
     ratio = params.edge_length_ratio
-    pairs = np.array([[0, 1], [1, 2], [2, 0]])
     thr2 = thr * thr
     while done < min(params.max_iterations, needed):
         B = min(params.batch_size, params.max_iterations - done)
+        first = done
         done += B
         idx = rng.integers(0, C, size=(B, 3))
         s, d = src[idx], dst[idx]  # (B, 3, 3)
-        ls = np.linalg.norm(s[:, pairs[:, 0]] - s[:, pairs[:, 1]], axis=-1)
-        ld = np.linalg.norm(d[:, pairs[:, 0]] - d[:, pairs[:, 1]], axis=-1)
+        ls = np.linalg.norm(s[:, _EDGES[:, 0]] - s[:, _EDGES[:, 1]], axis=-1)
+        ld = np.linalg.norm(d[:, _EDGES[:, 0]] - d[:, _EDGES[:, 1]], axis=-1)
         ok = np.all((ls >= ratio * ld) & (ld >= ratio * ls) & (ls > 0), axis=1)
         if not ok.any():
             continue
-        R, t = kabsch(s[ok], d[ok])
-        res = np.einsum("bij,cj->bci", R, src) + t[:, None, :] - dst[None]
-        counts = np.sum(np.sum(res * res, axis=-1) < thr2, axis=1)
-        if pool > 1:
-            for j in np.argsort(-counts, kind="stable")[: 4 * pool]:
-                kept.append((int(counts[j]), len(kept), R[j], t[j]))
-            kept = sorted(kept, key=lambda h: (-h[0], h[1]))[: 64 * pool]
-        i = int(np.argmax(counts))
-        if counts[i] > best_count:
-            best_count, best = int(counts[i]), (R[i], t[i])
-            needed = _needed_iterations(best_count / C, params.confidence)
-    out = [(best_count, best[0], best[1])]
-    out += [(c, R, t) for c, _, R, t in kept if not (R is best[0] or np.array_equal(R, best[0]))]
-    return out
+        sample = np.flatnonzero(ok)
+        R, t, res, fit_ok = fit_triangles(s[ok], d[ok])
+        ok = fit_ok & (res < thr)
+        if not ok.any():
+            continue
+        R, t, sample = R[ok], t[ok], sample[ok]
+        counts = np.count_nonzero(_squared_residuals(R, t, terms) < thr2, axis=1)
+        p_count = np.concatenate([p_count, counts])
+        p_order = np.concatenate([p_order, first + sample])
+        p_R, p_t = np.concatenate([p_R, R]), np.concatenate([p_t, t])
+        keep = np.lexsort((p_order, -p_count))[:pool]
+        p_count, p_order, p_R, p_t = p_count[keep], p_order[keep], p_R[keep], p_t[keep]
+        needed = _needed_iterations(max(int(p_count[0]), 0) / C, params.confidence)
+    # The placeholder (count -1: identity, centroids aligned) only when nothing was fitted.
+    real = p_count >= 0
+    sel = real if real.any() else np.arange(len(p_count)) == 0
+    return [(int(c), R, md - R @ ms + t) for c, R, t in zip(p_count[sel], p_R[sel], p_t[sel])]
+
+
+def _rank_by_fitness(found: list[tuple[int, np.ndarray, np.ndarray]], n_corr: int, tree: cKDTree,
+                     scene: np.ndarray, thr: float, n_points: int) -> list[int]:
+    """Order of hypotheses ``found`` (count, R, t) by fitness plus inlier ratio, best
+    first: the share of ``n_points`` scene points (M, 3) mm, evenly spread over their
+    order, with a model point (``tree``) within ``thr`` mm under the pose, plus count /
+    ``n_corr``; ties as given. One k-d tree query for all hypotheses (scene points taken
+    to the model frame)."""
+    sub = scene[np.linspace(0, len(scene) - 1, min(n_points, len(scene))).astype(np.int64)]
+    R = np.stack([h[1] for h in found])
+    t = np.stack([h[2] for h in found])
+    q = np.einsum("hsj,hji->hsi", sub[None] - t[:, None], R)  # (H, S, 3): R^T (p - t)
+    dist, _ = tree.query(q.reshape(-1, 3), k=1, distance_upper_bound=thr)
+    fit = np.count_nonzero(np.isfinite(dist).reshape(len(found), -1), axis=1) / len(sub)
+    score = fit + np.array([h[0] for h in found]) / n_corr
+    return list(np.lexsort((np.arange(len(found)), -score)))
 
 
 def _ransac_open3d(
@@ -264,11 +423,14 @@ def ransac_hypotheses(
 
     model_points (N, 3) mm with model_feats (N, D); scene_points (M, 3) mm camera frame
     with scene_feats (M, D) (same feature space, e.g. :func:`fusion.fuse` outputs);
-    diameter: object diameter in mm. The first pose is RANSAC's winner; the others are
-    the runners-up that survive non-maximum suppression in pose space
-    (:func:`distinct_poses`: ``nms_deg`` degrees, ``nms_frac`` diameters), each refitted
-    on its inliers. Deterministic for a given seed (numpy backend); the open3d backend
-    gives the winner only.
+    diameter: object diameter in mm. The first pose is RANSAC's best (see the module
+    docstring for ``params.score``); the others are runners-up that survive non-maximum
+    suppression in pose space (:func:`distinct_poses`: ``nms_deg`` degrees, ``nms_frac``
+    diameters), each refitted on its inliers. With ``score="fitness"``, the
+    ``max(k, final_candidates)`` best distinct poses are refitted and the k with the
+    highest fitness + inlier ratio returned, best first, so the first is the same for
+    every k up to ``final_candidates`` (:func:`ransac_align` is k = 1). Deterministic for
+    a given seed (numpy backend); the open3d backend gives the winner only.
     """
     params = params or RansacParams()
     mp = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
@@ -283,9 +445,16 @@ def ransac_hypotheses(
     thr = params.inlier_frac * float(diameter)
     corr, top1 = build_correspondences(model_feats, scene_feats, params)
     src, dst = mp[corr[:, 0]], sp[corr[:, 1]]
+    tree = cKDTree(mp)
     if params.backend == "numpy":
-        found = _ransac_numpy(src, dst, thr, params, np.random.default_rng(seed), pool=k)
-        found = [found[i] for i in distinct_poses([(R, t) for _, R, t in found], k, nms_deg, nms_frac * diameter)]
+        rng = np.random.default_rng(seed)
+        if params.score == "fitness":
+            found = _ransac_numpy(src, dst, thr, params, rng, pool=max(params.rescore_pool, k))
+            found = [found[i] for i in _rank_by_fitness(found, len(corr), tree, sp, thr, params.fitness_points)]
+        else:
+            found = _ransac_numpy(src, dst, thr, params, rng, pool=64 * k if k > 1 else 1)
+        n = max(k, params.final_candidates) if params.score == "fitness" else k
+        found = [found[i] for i in distinct_poses([(R, t) for _, R, t in found], n, nms_deg, nms_frac * diameter)]
     else:
         found = [(0, *_ransac_open3d(src, dst, thr, params, seed))]
     out = []
@@ -296,8 +465,9 @@ def ransac_hypotheses(
                 break
             R, t = kabsch(src[inl], dst[inl])
         top1_in = _count_within(mp[top1], sp, R, t, thr)
-        # Geometric fitness: scene points explained by the posed model surface samples.
-        dist, _ = cKDTree(mp @ R.T + t).query(sp, k=1)
+        # Geometric fitness: scene points explained by the posed model surface samples
+        # (the scene taken to the model frame: one tree for every pose).
+        dist, _ = tree.query((sp - t) @ R, k=1, distance_upper_bound=thr)  # inf beyond thr
         n_inliers = int(top1_in.sum())
         out.append(Registration(
             R=np.asarray(R, dtype=np.float64),
@@ -307,4 +477,9 @@ def ransac_hypotheses(
             fitness=float(np.mean(dist < thr)),
             n_correspondences=int(len(corr)),
         ))
+    if params.backend == "numpy" and params.score == "fitness":
+        # The refit can lift a right pose's fitness well above a wrong one's that scored
+        # the same on the subset: compare the refitted poses on every scene point.
+        order = sorted(range(len(out)), key=lambda i: (-(out[i].fitness + out[i].inlier_ratio), i))
+        out = [out[i] for i in order[:k]]
     return out
