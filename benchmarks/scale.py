@@ -141,7 +141,7 @@ def fit(points: list[Point]) -> tuple[float, float, float]:
     return float(a), float(b), r2
 
 
-def curve_images(args, tmp: Path) -> list[Point]:
+def curve_images(args) -> list[Point]:
     plan = plan_for(args.dataset, None, {})
     scene_id = plan.scene_ids[args.scene_index]
     n_all = len(plan.scene_images[scene_id])
@@ -183,7 +183,7 @@ def curve_model_points(args, tmp: Path) -> list[Point]:
     return points
 
 
-def curve_workers(args, tmp: Path) -> list[Point]:
+def curve_workers(args) -> list[Point]:
     plan = plan_for(args.dataset, None, {})
     items = [plan.items_of_scene(s)[0] for s in plan.scene_ids[:args.worker_scenes]]
     points = []
@@ -274,7 +274,7 @@ def main() -> None:
         tmp = Path(d)
         curves: dict[str, tuple[str, list[Point]]] = {}
         print("images per job", flush=True)
-        curves["images"] = ("images", curve_images(args, tmp))
+        curves["images"] = ("images", curve_images(args))
         print("candidates per target", flush=True)
         curves["candidates"] = ("candidates per target",
                                 curve_param(args, tmp, "segment_prior", "top_k", args.top_k, rerun_prior=True))
@@ -283,7 +283,7 @@ def main() -> None:
         print("model points N", flush=True)
         curves["N"] = ("N (model points)", curve_model_points(args, tmp))
         print("workers", flush=True)
-        curves["workers"] = ("workers", curve_workers(args, tmp))
+        curves["workers"] = ("workers", curve_workers(args))
     peaks = plan_peak_memory(args.dataset)
     write(args, curves, peaks, "benchmarks/scale.py " + " ".join(sys.argv[1:]), time.strftime("%Y-%m-%d"))
 

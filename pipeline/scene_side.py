@@ -23,6 +23,7 @@ Units and conventions: BOP's (mm, OpenCV camera, model-to-camera ``R``, ``t``).
 
 from __future__ import annotations
 
+import math
 import time
 from functools import cached_property
 from dataclasses import dataclass, replace
@@ -666,9 +667,8 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
         im_id = int(g.im_id.iloc[0])
         image_time[im_id] = image_time.get(im_id, 0.0) + dt
     hyps = pd.DataFrame(rows, columns=HYPOTHESIS_COLUMNS[:-1])
-    order = hyps.sort_values(["cand_id", key, "evidence", "hyp"], ascending=[True, False, False, True],
-                             na_position="last")
-    best = order.groupby("cand_id", sort=False).head(1).index
+    best = [min(g.index, key=lambda i: hypothesis_rank(g.at[i, key], g.at[i, "evidence"], g.at[i, "hyp"]))
+            for _, g in hyps.groupby("cand_id", sort=False)]
     hyps["chosen"] = hyps.index.isin(best)
     cands = hyps[hyps.chosen].sort_values("cand_id").reset_index(drop=True)
     cand_time = hyps.groupby("cand_id").time_s.sum()
@@ -685,6 +685,15 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
             im_id = int(cands.at[i, "im_id"])
             image_time[im_id] = image_time.get(im_id, 0.0) + dt
     return hyps, cands[CANDIDATE_COLUMNS], image_time
+
+
+def hypothesis_rank(value: float, evidence: float, hyp: int) -> tuple:
+    """Sort key of a candidate's hypotheses, best first: the ranking value (higher first),
+    then the evidence (higher first), each NaN after every number, then ``hyp``. The one
+    order of :meth:`_RefineWork.best_of` (whose best the turns start from) and of the
+    candidate's final choice."""
+    v, e = float(value), float(evidence)
+    return (math.isnan(v), 0.0 if math.isnan(v) else -v, math.isnan(e), 0.0 if math.isnan(e) else -e, int(hyp))
 
 
 def _icp_on_one_thread(mapper: Mapper) -> Any:
@@ -765,12 +774,9 @@ class _RefineWork:
                 "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms}
 
     def best_of(self, rows: list[dict[str, Any]]) -> dict[str, Any]:
-        """The first of a candidate's rows by the ranking key, then the evidence, then hyp
-        (as the final choice in :func:`refine_candidates` orders them)."""
-        def rank(r: dict[str, Any]) -> tuple:
-            v, e = r[self.key], r["evidence"]
-            return (bool(np.isnan(v)), 0.0 if np.isnan(v) else -v, 0.0 if np.isnan(e) else -e, r["hyp"])
-        return min(rows, key=rank)
+        """The first of a candidate's rows by :func:`hypothesis_rank` (the order of the
+        final choice in :func:`refine_candidates`)."""
+        return min(rows, key=lambda r: hypothesis_rank(r[self.key], r["evidence"], r["hyp"]))
 
     def turned_rows(self, parent: dict[str, Any], first_hyp: int) -> tuple[list[dict[str, Any]], float]:
         """The turns of ``parent``, each aligned by a quick ICP; the ``params.turns`` best
