@@ -127,6 +127,14 @@ onstart:
     if _why:
         print(f"error: {_why}", file=sys.stderr)
         sys.exit(1)
+    # Encoders standing in for the paper's: one line per run. Here, not at the top of the
+    # file, which every cluster job parses again (jobs run without hooks); `freeze run`
+    # prints it itself, with its own options, and sets FREEZE_STAND_IN_SHOWN.
+    from pipeline.stand_in import stand_in_notice
+
+    _notice = stand_in_notice(RUN.geometric_encoder, RUN.visual_encoder)
+    if _notice and not os.environ.get("FREEZE_STAND_IN_SHOWN"):
+        print(_notice, file=sys.stderr)
 
 
 onsuccess:

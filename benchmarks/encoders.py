@@ -75,14 +75,15 @@ def _dinov2_weights(folder: Path, model: str, name: str | None = None) -> Path:
     return out
 
 
-def _random_weights_dir(folder: Path) -> Path:
-    """A weights folder with random GeDi and DINOv2 ViT-S/B weights where the default
-    manifests look for them (gedi/chkpt.tar; dinov2-small, dinov2-base in HF layout)."""
+def _random_weights_dir(folder: Path, models: tuple[str, ...] = ("vits14", "vitb14")) -> Path:
+    """A weights folder with random GeDi and DINOv2 weights (``models``, default ViT-S/B)
+    where the default manifests look for them (gedi/chkpt.tar; dinov2-small, dinov2-base...
+    in HF layout)."""
     from pipeline.encoders.dinov2 import hf_dirname
 
     (folder / "gedi").mkdir(parents=True, exist_ok=True)
     _gedi_weights(folder / "gedi")
-    for model in ("vits14", "vitb14"):
+    for model in models:
         _dinov2_weights(folder, model, hf_dirname(model))
     return folder
 
@@ -155,8 +156,13 @@ def pipeline_pairs(pairs: list[str]) -> str:
              "(5000 points, 42 templates); scene side: scene_features + register + refine job time per target "
              "(3 candidates of 1000 points per target at most).", "",
              "| geometric + visual | onboarding s/object | scene-side s/target | run wall time (s) |", "|---|---|---|---|"]
+    from pipeline.config import load_encoder_manifest
+
+    # the DINOv2 sizes the pairs use (dinov2-vitl14 -> vitl14)
+    models = tuple(sorted({str(load_encoder_manifest(p.split("+")[1]).params["model"]) for p in pairs
+                           if load_encoder_manifest(p.split("+")[1]).encoder == "dinov2"}))
     with tempfile.TemporaryDirectory() as tmp:
-        wdir = _random_weights_dir(Path(tmp) / "weights")
+        wdir = _random_weights_dir(Path(tmp) / "weights", models)
         for pair in pairs:
             geo, vis = pair.split("+")
             r = run_pair("synthtiny", geo, vis, weights_dir=str(wdir), cache=Path(tmp) / "cache")

@@ -54,12 +54,12 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.encoders.gedi import (  # noqa: E402
     GEDI_DIM,
-    STATE_KEY,
     GeDiEncoder,
     GeDiNet,
     SetAbstraction,
     local_reference_frame,
     quaternion_to_matrix,
+    save_random_checkpoint,
 )
 from pipeline.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
 from pipeline.geometry.sampling import sample_surface  # noqa: E402
@@ -184,21 +184,8 @@ def descriptors(enc: GeDiEncoder, path: str, pts: np.ndarray, diameter: float, c
 
 def calibrated_weights(folder: Path) -> Path:
     """Random GeDi weights in the official layout, batch-norm statistics calibrated on
-    random curved patches (as tests/test_encoders_gedi.py does)."""
-    torch.manual_seed(0)
-    net = GeDiNet()
-    for m in net.modules():
-        if isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)):
-            m.momentum = None
-    shapes = torch.rand(24, 3, 1) * 1.5 + 0.1
-    bend = torch.rand(24, 1, 1) - 0.5
-    xy = torch.rand(24, 2, 256) * 2 - 1
-    net.train()
-    with torch.no_grad():
-        net(torch.cat([xy, bend * (xy[:, :1] ** 2 - xy[:, 1:] ** 2)], 1) * shapes)
-    path = folder / "chkpt.tar"
-    torch.save({STATE_KEY: net.eval().state_dict()}, path)
-    return path
+    random curved patches (:func:`pipeline.encoders.gedi.save_random_checkpoint`)."""
+    return save_random_checkpoint(folder / "chkpt.tar", seed=0)
 
 
 def clouds() -> tuple[dict[str, np.ndarray], float]:

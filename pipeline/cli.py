@@ -78,11 +78,13 @@ def encoders(
     weights_dir: Optional[Path] = typer.Option(
         None, help="folder of encoder weights (default $FREEZE_WEIGHTS or <project>/weights)"),
 ) -> None:
-    """List the encoder manifests: kind, dimension, version, and the weights each needs
-    (found or not, and the exact path looked in)."""
+    """List the encoder manifests: kind, dimension, version, the weights each needs
+    (found or not, and the exact path looked in), and which are the paper's (GeDi +
+    DINOv2 ViT-L/14) and which weight-free stand-ins for them."""
     from pipeline.config import MANIFEST_DIR, ManifestError, load_encoder_manifest
     from pipeline.encoders.registry import (EncoderSpec, WeightsNotFound, build_encoder, known_encoders, needs_weights,
                                             resolve_weights_dir)
+    from pipeline.stand_in import FETCH, paper_configuration, paper_line
 
     wdir = resolve_weights_dir(weights_dir)
     rows = []
@@ -90,7 +92,8 @@ def encoders(
         row: dict = {"manifest": path.stem}
         try:
             man = load_encoder_manifest(path.stem)
-            row.update(encoder=man.encoder, kind=man.kind)
+            row.update(encoder=man.encoder, kind=man.kind, paper=man.paper, stand_in=man.stand_in,
+                       role="paper" if man.paper else "stand-in" if man.stand_in else "")
             enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=wdir)
             weights = getattr(enc, "weights_path", None) or getattr(enc, "weights", None)
             row.update(dim=enc.dim, version=enc.version, signature=enc.signature(),
@@ -101,16 +104,22 @@ def encoders(
             row.update(weights=f"ERROR: {e}", error=str(e), ok=False)
         rows.append(row)
     unused = sorted(set(known_encoders()) - {r.get("encoder") for r in rows})
+    paper = {kind: name for kind, (name, _) in paper_configuration().items()}
+    paper_text = paper_line()
     if as_json:
-        print(json.dumps({"weights_dir": str(wdir), "manifests": rows, "registered_without_manifest": unused}, indent=2))
+        print(json.dumps({"weights_dir": str(wdir), "manifests": rows, "registered_without_manifest": unused,
+                          "paper_configuration": {**paper, "fetch": f"{FETCH} {' '.join(paper.values())}",
+                                                  "note": paper_text} if paper else None}, indent=2))
         return
-    table = Table("manifest", "encoder", "kind", "dim", "version", "signature", title="encoders")
+    table = Table("manifest", "encoder", "kind", "role", "dim", "version", "signature", title="encoders")
     table.add_column("weights", overflow="fold")
     for r in rows:
-        table.add_row(r["manifest"], r.get("encoder", "?"), r.get("kind", "?"), str(r.get("dim", "-")),
-                      str(r.get("version", "-")), r.get("signature", "-"),
+        table.add_row(r["manifest"], r.get("encoder", "?"), r.get("kind", "?"), r.get("role", ""),
+                      str(r.get("dim", "-")), str(r.get("version", "-")), r.get("signature", "-"),
                       r["weights"] if r["ok"] else f"[red]{r['weights']}")
     Console(width=max(120, Console().width)).print(table)
+    if paper_text:
+        console.print(paper_text, markup=False, highlight=False, soft_wrap=True)
     console.print(f"weights folder: {wdir} (--weights-dir, $FREEZE_WEIGHTS, or <project>/weights)")
     if unused:
         console.print(f"registered encoders without a manifest: {', '.join(unused)}")
@@ -343,6 +352,11 @@ def datasets_check(
             console.print(f"not found under {root}: {', '.join(absent)}")
     if any(not r.ok for r in reports):
         raise typer.Exit(1)
+
+
+from pipeline.weights_cli import weights_app  # noqa: E402  (`freeze weights list|fetch`: the encoders' weight files)
+
+app.add_typer(weights_app, name="weights")
 
 
 def _add_module_commands() -> None:

@@ -6,10 +6,12 @@ import typer
 
 from pipeline.bop.errors import BopFormatError
 from pipeline.config import ManifestError
+from pipeline.encoders.registry import WeightsNotFound
 from pipeline.store import DamagedArtifact, StorageError
 
-USER_ERRORS: tuple[type[Exception], ...] = (BopFormatError, ManifestError, DamagedArtifact, StorageError)
-"""Errors that mean bad input, a damaged artifact or a full or read-only disk: commands
+USER_ERRORS: tuple[type[Exception], ...] = (BopFormatError, ManifestError, DamagedArtifact, StorageError,
+                                            WeightsNotFound)
+"""Errors that mean bad input, missing weight files, a damaged artifact or a full or read-only disk: commands
 print their one-line message (which names the file) and exit 1, without a traceback."""
 
 

@@ -12,8 +12,8 @@ the field. Snakemake's ``--config`` may override a few top-level run keys with p
 strings (``datasets=a,b``, ``geometric_encoder=...`` or its short form ``geometric=...``,
 ``visual_encoder=...`` or ``visual=...``, ``weights_dir=...``, ``bop_root=...``,
 ``method=...``, ``prior=sam6d-fastsam[,cnos-fastsam]`` or its long form ``priors=...``,
-``images_per_job=N``, ``dask_scheduler=tcp://host:8786``,
-``run=manifests/runs/other.yaml``); ``bop_root`` defaults to ``$BOP_ROOT``. An encoder may be ``none``
+``images_per_job=N``, ``dask_scheduler=tcp://host:8786``, ``device=auto|cpu|cuda``,
+``allow_download=true``, ``run=manifests/runs/other.yaml``); ``bop_root`` defaults to ``$BOP_ROOT``. An encoder may be ``none``
 (geometry-only or vision-only runs), not both.
 """
 
@@ -204,6 +204,25 @@ class EncoderManifest(_Strict):
     kind: Literal["geometric", "visual"]
     params: dict[str, Any] = {}
     description: str = ""
+    paper: bool = Field(False, description="one of the encoders of the paper's configuration (GeDi + DINOv2)")
+    stand_in: bool = Field(False, description="a weight-free encoder standing in for the paper's (printed at the "
+                                              "start of a run and in its report)")
+    download: list["WeightDownload"] = Field(
+        default_factory=list, description="where `freeze weights fetch` gets the weight files this encoder loads; "
+                                          "never part of a cache key")
+
+
+class WeightDownload(_Strict):
+    """One weight file an encoder loads, and where it is published (``freeze weights fetch``)."""
+
+    url: str = Field(description="http(s) address of the file (or of an archive holding it)")
+    file: str = Field(description="where it goes, relative to the weights folder (the path the loader looks up)")
+    member: str | None = Field(None, description="the url is a zip archive: the member to extract as `file`")
+    sha256: str | None = Field(None, description="expected SHA-256 of `file` (null: not pinned; the digest of the "
+                                                 "first download is recorded beside the file and checked after)")
+    source: Literal["official", "hf"] = Field(
+        "official", description="official: the project's own release; hf: the Hugging Face copy (--source hf)")
+    size: int | None = Field(None, ge=0, description="approximate size in bytes, for `freeze weights list`")
 
 
 class DatasetManifest(_Strict):
@@ -318,6 +337,13 @@ class RunManifest(_Strict):
         0, ge=0, description="scene-side jobs (scene_features, register, refine) cover at most this many of a "
                              "scene's target images each, so that a scene of many images spreads over many jobs "
                              "(0: one job per scene); the results do not depend on it, nor does any cache key")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="where torch runs (DINOv2, GeDi, SAR's encoder passes): auto picks cuda when present; "
+                            "the precision follows the device (bf16 where the hardware has it); keys change only "
+                            "where outputs do (the precision is keyed, the device recorded)")
+    allow_download: bool = Field(
+        False, description="let a missing DINOv2 load from the Hugging Face hub through transformers, cached in "
+                           "the weights folder (default: offline; `freeze weights fetch` is the explicit way)")
     dask_scheduler: str | None = Field(
         None, description="address of a running dask.distributed scheduler (tcp://host:8786) that register, "
                           "refine and score send their per-candidate and per-image work to (default "
@@ -402,7 +428,7 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
 
 # Flat keys that `snakemake --config key=value` may set.
 _OVERRIDES = ("datasets", "geometric_encoder", "visual_encoder", "bop_root", "weights_dir", "method", "priors",
-              "images_per_job", "dask_scheduler")
+              "images_per_job", "dask_scheduler", "device", "allow_download")
 # Short forms accepted on the command line.
 _ALIASES = {"geometric": "geometric_encoder", "visual": "visual_encoder", "prior": "priors"}
 

@@ -19,6 +19,7 @@ import math
 import shutil
 import tempfile
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
@@ -31,6 +32,27 @@ MODEL_STAGES = ("render_templates", "symmetries", "model_features")
 SCENE_STAGES = ("segment_prior", "scene_features", "register", "refine")
 ESTIMATE_CACHE = "_estimate"
 """Folder under the cache root holding the artifacts of ``freeze estimate`` (per frame name)."""
+FLAG_KEYS = {"geometric": ("geometric", "geometric_encoder"), "visual": ("visual", "visual_encoder"),
+             "device": ("device",)}
+"""``freeze estimate``'s flags and the run-manifest overrides (``--config`` keys, short and
+long forms) they stand for; the last is the manifest's field."""
+
+
+def merge_flags(overrides: Mapping[str, Any] | None, **flags: str | None) -> dict[str, Any]:
+    """``overrides`` with the values of ``--geometric``, ``--visual`` and ``--device``
+    (``flags``, None: not given) set as the run's fields. A flag and a ``--config`` key
+    giving two different values is an EstimateError naming both."""
+    out = dict(overrides or {})
+    for flag, value in flags.items():
+        if value is None:
+            continue
+        keys = FLAG_KEYS[flag]
+        for k in keys:
+            if k in out and str(out[k]) != str(value):
+                raise EstimateError(f"--{flag} {value} conflicts with --config {k}={out[k]}: give one of them")
+        out = {k: v for k, v in out.items() if k not in keys}
+        out[keys[-1]] = value
+    return out
 
 
 @dataclass
@@ -51,13 +73,25 @@ class EstimateResult:
     artifacts: dict[str, Path] = field(default_factory=dict)
 
 
-def frame_plan(run, frame, cache: Path | None = None):
-    """The :class:`pipeline.plan.DatasetPlan` of a wrapped frame under ``run``, its
+def frame_run_plan(run, frame, cache: Path | None = None):
+    """The :class:`pipeline.plan.RunPlan` of ``run`` on a wrapped frame alone, its
     artifacts under ``<cache root>/_estimate/``."""
     from pipeline.plan import RunPlan, cache_root
 
     frame_run = run.model_copy(update={"datasets": [str(frame.manifest)], "bop_root": str(frame.bop_root.resolve())})
-    return RunPlan(frame_run, cache=Path(cache or cache_root()) / ESTIMATE_CACHE)[frame.root.name]
+    return RunPlan(frame_run, cache=Path(cache or cache_root()) / ESTIMATE_CACHE)
+
+
+def frame_plan(run, frame, cache: Path | None = None):
+    """The :class:`pipeline.plan.DatasetPlan` of a wrapped frame under ``run``, its
+    artifacts under ``<cache root>/_estimate/``."""
+    return frame_run_plan(run, frame, cache)[frame.root.name]
+
+
+def _whole_line(steps, text: str) -> None:
+    """Print ``text`` as one line, unwrapped (it holds commands to copy), when the steps are shown."""
+    if steps.enabled:
+        steps._console.print(f"  {text}", soft_wrap=True, markup=False, highlight=False)
 
 
 def run_stages(plan, stages_items: Sequence[tuple[str, str]], steps) -> dict[str, bool]:
@@ -90,6 +124,9 @@ def estimate(
     out_dir: Path | str | None = None,
     bop_name: str | None = None,
     overrides: Mapping[str, Any] | None = None,
+    geometric: str | None = None,
+    visual: str | None = None,
+    device: str | None = None,
     cache: Path | str | None = None,
     progress: bool = False,
     console: Any = None,
@@ -107,20 +144,28 @@ def estimate(
     ``<out_dir>/bop/<bop_name>`` with ``<out_dir>/bop/<bop_name>.yaml`` (a temporary
     folder when None; nothing is kept then but the cache). bop_name: default
     :func:`pipeline.bop.wrap.default_name` of the model file. overrides: run-manifest
-    overrides (:func:`pipeline.config.load_run_with_overrides`). cache: cache root
-    (default ``$FREEZE_CACHE`` or ``<project>/cache``).
+    overrides (:func:`pipeline.config.load_run_with_overrides`). geometric, visual:
+    encoder manifest names, device: ``auto``, ``cpu`` or ``cuda`` (the same as the
+    overrides ``geometric=``, ``visual=``, ``device=``; a conflicting override is an
+    error). cache: cache root (default ``$FREEZE_CACHE`` or ``<project>/cache``).
+
+    A grey image (one channel, or three identical ones) makes the frame a grey dataset
+    (:func:`pipeline.estimate.frame.dataset_manifest`): templates and SAR renders are
+    then grey too.
     """
     from pipeline.bop import wrap
     from pipeline.config import load_run_with_overrides
     from pipeline.estimate.frame import write_frame_dataset
-    from pipeline.estimate.inputs import (load_camera, load_depth, load_mask, load_model, load_rgb, parse_bbox,
-                                          scale_warning)
+    from pipeline.estimate.inputs import (load_camera, load_depth, load_mask, load_model, load_rgb_and_mode,
+                                          parse_bbox, scale_warning)
     from pipeline.geometry.box_points import box_candidate_points
     from pipeline.geometry.crops import mask_to_bbox
     from pipeline.plan import build_encoders
     from pipeline.progress import StepTimer
+    from pipeline.stand_in import encoders_sentence, stand_in_notice
 
     steps = StepTimer(progress, console)
+    overrides = merge_flags(overrides, geometric=geometric, visual=visual, device=device)
     if (mask is None) == (bbox is None):
         raise EstimateError("give exactly one localisation prior: --mask MASK.png or --bbox x,y,w,h")
     bop_name = bop_name if bop_name is not None else wrap.default_name(model)
@@ -130,6 +175,9 @@ def estimate(
         raise EstimateError(f"--bop-name: {e}") from None
     with steps("inputs"):
         run = load_run_with_overrides(overrides)
+        notice = stand_in_notice(run.geometric_encoder, run.visual_encoder, form="estimate")
+        if notice:
+            _whole_line(steps, notice)
         cam = load_camera(camera)
         for name, p in (("model", model), ("RGB", rgb), ("depth", depth)):
             if not Path(p).is_file():
@@ -138,7 +186,8 @@ def estimate(
             raise EstimateError(f"--depth-scale must be a positive number, got {depth_scale}")
         scale = depth_scale if depth_scale is not None else (cam.depth_scale if cam.depth_scale is not None else 1.0)
         scale_src = "--depth-scale" if depth_scale is not None else (f"{camera}" if cam.depth_scale is not None else "default")
-        rgb_im = load_rgb(rgb)
+        rgb_im, grey_why = load_rgb_and_mode(rgb)
+        image_mode = "gray" if grey_why else "rgb"
         depth_im = load_depth(depth, scale)
         if rgb_im.shape[:2] != depth_im.shape:
             raise EstimateError(f"{depth}: depth is {depth_im.shape[1]}x{depth_im.shape[0]} px but {rgb} is "
@@ -155,6 +204,9 @@ def estimate(
         geo, vis = build_encoders(run)
     steps.note(f"camera: {cam.form}; depth scale {scale:g} mm/unit ({scale_src}); image {W}x{H}; "
                f"model diameter {diameter:.1f} mm; encoders {geo.signature()} + {vis.signature()}")
+    if grey_why:
+        _whole_line(steps, f"grey image detected ({grey_why}): the frame is a grey dataset (image_dir: gray), so "
+                           "templates and SAR renders are grey too")
     warning = scale_warning(depth_im, cam.K, box, diameter)
     if warning:
         steps.warn(warning)
@@ -176,10 +228,13 @@ def estimate(
             try:
                 frame = write_frame_dataset(work / "bop", bop_name, rgb=rgb_im, depth_mm=depth_im, K=cam.K,
                                             model_path=Path(model), model_scale=model_scale, mask=mask_im,
-                                            bbox=box, kept_mask=kept)
+                                            bbox=box, kept_mask=kept, image_mode=image_mode)
             except ValueError as e:
                 raise EstimateError(f"writing the BOP dataset {work / 'bop' / bop_name}: {e}") from None
-        plan = frame_plan(run, frame, Path(cache) if cache else None)
+        rp = frame_run_plan(run, frame, Path(cache) if cache else None)
+        plan = rp[frame.root.name]
+        for note in rp.notes(frame.root.name):
+            steps.warn(note)
         obj, scene = frame.obj_item(), frame.scene_item()
         reused = run_stages(plan, [(s, obj) for s in MODEL_STAGES], steps)
         run_stages(plan, [(s, "all" if s == "segment_prior" else scene) for s in SCENE_STAGES], steps)
@@ -191,17 +246,23 @@ def estimate(
                                "mask": str(Path(mask).resolve()) if mask is not None else None,
                                "prior": "mask" if mask is not None else "bbox", "bbox": [float(v) for v in box],
                                "depth_scale": scale, "depth_scale_from": scale_src, "model_scale": model_scale,
-                               "camera_form": cam.form, "K": cam.K.tolist(), "image_size": [W, H]},
-                       encoders={"geometric": geo.signature(), "visual": vis.signature()})
+                               "camera_form": cam.form, "K": cam.K.tolist(), "image_size": [W, H],
+                               "image_mode": image_mode, "grey_because": grey_why},
+                       encoders={"geometric": run.geometric_encoder, "visual": run.visual_encoder,
+                                 "signatures": {"geometric": geo.signature(), "visual": vis.signature()},
+                                 "device": run.device},
+                       note=encoders_sentence(run.geometric_encoder, run.visual_encoder, form="estimate"))
     finally:
         if out_dir is None:
             shutil.rmtree(work, ignore_errors=True)
 
 
 def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: np.ndarray, K: np.ndarray, box,
-            steps, model_cache_reused: bool, prior_details: dict, inputs: dict, encoders: dict) -> EstimateResult:
+            steps, model_cache_reused: bool, prior_details: dict, inputs: dict, encoders: dict,
+            note: str) -> EstimateResult:
     """Read the estimate back from the artifacts; write pose.json, the pictures and the
-    artifacts' copies to ``out``."""
+    artifacts' copies to ``out``. ``note``: which encoders ran, in one sentence
+    (:func:`pipeline.stand_in.encoders_sentence`)."""
     from pipeline.bop.dataset import save_rgb
     from pipeline.estimate.frame import IM_ID, SCENE_ID
     from pipeline.estimate.record import candidate_record, dumps, jsonable
@@ -226,6 +287,7 @@ def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: n
                   "n_continuous_symmetries": rec["n_continuous_symmetries"]},
         "artifacts": {s: str(artifacts[s]) for s in SCENE_STAGES},
         "encoders": encoders,
+        "note": note,
         "units": "R: model-to-camera rotation; t: mm (OpenCV camera, BOP convention)",
     }
     files: dict[str, Path] = {}
@@ -267,6 +329,14 @@ def plan_prior_mask(plan, frame) -> np.ndarray:
     return rle_decode({"counts": list(c.rle_counts), "size": [int(c.height), int(c.width)]})
 
 
+class Device(str, Enum):
+    """``freeze estimate --device``: the run manifest's ``device``."""
+
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
 def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
     """Add ``freeze estimate`` to ``app`` (``show_app`` is unused)."""
 
@@ -289,6 +359,15 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         bop_name: Optional[str] = typer.Option(None, "--bop-name", help="name of the one-image BOP dataset written to "
                                                "OUT/bop/NAME, lowercase letters and digits (default: the model "
                                                "file's name reduced to them: obj_000005.ply -> obj000005)"),
+        geometric: Optional[str] = typer.Option(None, "--geometric", help="geometric encoder: a manifest of "
+                                                "manifests/encoders/ (`freeze encoders` lists them), e.g. gedi, the "
+                                                "paper's; the same as --config geometric=NAME (default: the run's, fpfh)"),
+        visual: Optional[str] = typer.Option(None, "--visual", help="visual encoder manifest, e.g. dinov2-vitl14, "
+                                             "the paper's; the same as --config visual=NAME (default: the run's, "
+                                             "colortex)"),
+        device: Optional[Device] = typer.Option(None, "--device", case_sensitive=False, help="where torch runs "
+                                                "(DINOv2, GeDi): auto picks cuda when there is one (default: the "
+                                                "run's, auto)"),
         config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value, e.g. "
                                                    "visual=dinov2-vits14 or register.max_iterations=20000"),
         progress: bool = typer.Option(True, help="show each step with its time"),
@@ -303,6 +382,11 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         <cache>/_estimate/NAME/) and reused for every frame of the same model and
         parameters.
 
+        A grey image (one channel, or three identical ones) is detected and the frame
+        declared grey, so that the templates and SAR renders are grey too. The default
+        encoders are weight-free stand-ins for the paper's: a note at the start says
+        which, and how to fetch and choose the paper's (`freeze encoders` marks them).
+
         Writes OUT/pose.json (R, t in mm, the evidence and the numbers behind it),
         OUT/overlay.png (the model at the estimated pose over the image), OUT/points.png
         (the depth points used) and a copy of every stage's artifact (OUT/render_templates,
@@ -310,19 +394,22 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         --config bop_root=OUT/bop datasets=OUT/bop/NAME.yaml` (not scored: no ground truth).
         """
         from rich.console import Console
+        from rich.markup import escape
 
         from pipeline.bop.errors import BopFormatError
         from pipeline.cli_common import parse_overrides
         from pipeline.config import ManifestError
 
         console = Console(stderr=True)
-        console.print(f"[bold]freeze estimate[/] {model.name} in {rgb.name} -> {out}")
+        console.print(f"[bold]freeze estimate[/] {escape(model.name)} in {escape(rgb.name)} -> {escape(str(out))}")
         try:
             res = estimate(model, rgb, depth, camera, mask=mask, bbox=bbox, depth_scale=depth_scale,
                            model_scale=model_scale, out_dir=out, bop_name=bop_name, overrides=parse_overrides(config),
+                           geometric=geometric, visual=visual, device=device.value if device else None,
                            progress=progress, console=console)
         except (EstimateError, ManifestError, BopFormatError) as e:
-            console.print(f"[red]error:[/] {e}")
+            # one line, whatever the terminal's width: the message names the file to fix
+            console.print(f"[red]error:[/] {escape(str(e))}", soft_wrap=True)
             raise typer.Exit(1)
         r = res.record
         h = r["hypothesis"]

@@ -353,18 +353,56 @@ def _encoder_manifest(name: str, kind: str) -> cfg.EncoderManifest:
     return man
 
 
-def _encoder_entry(name: str, kind: str, weights_dir: str | None = None) -> dict[str, Any]:
-    """Cache-relevant description of an encoder manifest: registry name, version, params."""
+def _run_device(run: cfg.RunManifest) -> str | None:
+    """The run's device for the encoders: None for ``auto`` (each encoder manifest's own
+    ``device``, whose ``auto`` picks CUDA when torch sees it), else ``cpu``/``cuda``.
+    ``cuda`` without a visible CUDA device is a :class:`~pipeline.config.ManifestError`
+    (one line); torch is imported only to check that."""
+    device = run.device
+    if device == "auto":
+        return None
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise cfg.ManifestError("--config device=cuda: no CUDA device is visible here (torch.cuda.is_available() "
+                                    "is false); run on a machine with one, or use device=auto or device=cpu")
+    return device
+
+
+def _build(name: str, kind: str, run: cfg.RunManifest | None, weights_dir: str | None = None):
+    """The encoder of manifest ``name`` built with the run's weights folder, device and
+    download permission (only ``weights_dir`` without a run)."""
     from pipeline.encoders.registry import EncoderSpec, build_encoder
 
     man = _encoder_manifest(name, kind)
-    enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=weights_dir)
+    spec = EncoderSpec(name=man.encoder, params=dict(man.params))
+    if run is None:
+        return man, build_encoder(spec, weights_dir=weights_dir)
+    return man, build_encoder(spec, weights_dir=run.weights_dir, device=_run_device(run),
+                              allow_download=run.allow_download)
+
+
+def encoder_runtime(enc: Any) -> dict[str, Any]:
+    """Where an encoder runs and in what precision, as the stages record it in their
+    manifests (``"runtime"``; never in a key): ``{"encoder", "device", "precision"}``.
+    The numpy/open3d encoders run on the CPU and have no precision setting (null)."""
+    return {"encoder": enc.name, "device": str(getattr(enc, "device", "cpu")),
+            "precision": getattr(enc, "precision", None)}
+
+
+def _encoder_entry(name: str, kind: str, weights_dir: str | None = None,
+                   run: cfg.RunManifest | None = None) -> dict[str, Any]:
+    """Cache-relevant description of an encoder manifest: registry name, version, params
+    (and, not keyed, ``runtime``: the device and precision it runs with here)."""
+    man, enc = _build(name, kind, run, weights_dir)
     return {
         "manifest": cfg.encoder_manifest_name(name, kind),
         "encoder": man.encoder,
         "version": enc.version,
         "params": enc.cache_params(),
         "signature": enc.signature(),
+        "runtime": encoder_runtime(enc),
     }
 
 
@@ -499,8 +537,8 @@ class RunPlan:
     @cached_property
     def encoders(self) -> dict[str, dict[str, Any]]:
         return {
-            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric", self.run.weights_dir),
-            "visual": _encoder_entry(self.run.visual_encoder, "visual", self.run.weights_dir),
+            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric", run=self.run),
+            "visual": _encoder_entry(self.run.visual_encoder, "visual", run=self.run),
         }
 
     @cached_property
@@ -660,11 +698,8 @@ def plan_from_json(run_json: str | None = None, overrides: dict[str, Any] | None
 
 
 def build_encoders(run: cfg.RunManifest):
-    """Instantiate the run's (geometric, visual) encoders from their manifests."""
-    from pipeline.encoders.registry import EncoderSpec, build_encoder
-
-    out = []
-    for name, kind in ((run.geometric_encoder, "geometric"), (run.visual_encoder, "visual")):
-        man = _encoder_manifest(name, kind)
-        out.append(build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=run.weights_dir))
-    return tuple(out)
+    """Instantiate the run's (geometric, visual) encoders from their manifests, with the
+    run's weights folder, device (``--config device=cpu|cuda`` replaces the manifests'
+    ``device``) and ``allow_download``."""
+    return tuple(_build(name, kind, run)[1]
+                 for name, kind in ((run.geometric_encoder, "geometric"), (run.visual_encoder, "visual")))

@@ -184,6 +184,11 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
             out.print("[red]error: no dataset of the run can be run (see above); nothing to do")
             raise typer.Exit(1)
         args = [f"{k}={v}" for k, v in overrides.items()]
+        from pipeline.stand_in import stand_in_notice
+
+        notice = stand_in_notice(rp.run.geometric_encoder, rp.run.visual_encoder, form="freeze")
+        if notice:
+            out.print(notice, markup=False)
         try:
             for line in recover(workdir, rp, datasets, args):
                 out.print(line)
@@ -193,6 +198,8 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         # Every output is a manifest published atomically after its item, and every
         # existing one was just verified when the killed run left marks: Snakemake's
         # marks of unfinished jobs can only be stale, and the missing outputs rerun.
+        # the Snakefile's onstart would print the stand-in notice again, with Snakemake's options
+        env = {**os.environ, "FREEZE_STAND_IN_SHOWN": "1"}
         proc = _snakemake(workdir, "--cores", str(cores), *profile_args, target, "--ignore-incomplete",
-                          *(["--config", *args] if args else []), *ctx.args)
+                          *(["--config", *args] if args else []), *ctx.args, env=env)
         raise typer.Exit(proc.returncode)

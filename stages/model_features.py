@@ -9,7 +9,7 @@ nearest seen point). Algorithm: :func:`pipeline.model_side.model_features`.
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan, build_encoders
+from pipeline.plan import DatasetPlan, build_encoders, encoder_runtime
 from pipeline.store import load_arrays
 
 
@@ -25,6 +25,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     f = model_features(bop.load_model(obj_id), tpl, geo_enc, vis_enc, diameter, n_points=p.n_points,
                        seed=io.seed(item, p.seed), batch_size=p.batch_size)
     with io.publish() as w:
+        # where the encoders ran and in what precision: recorded, not keyed
+        w.manifest["runtime"] = {"geometric": encoder_runtime(geo_enc), "visual": encoder_runtime(vis_enc)}
         save_model_features(w.dir / "features.zarr", f,
                             {"key": io.out.key, "obj_id": obj_id, "diameter": diameter,
                              "geometric_encoder": geo_enc.signature(), "visual_encoder": vis_enc.signature()})

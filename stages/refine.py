@@ -56,7 +56,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.bop.detections import rle_decode
     from pipeline.geometry.symmetry import SymmetrySet
     from pipeline.model_side import read_near_symmetries, read_symmetries
-    from pipeline.plan import build_encoders
+    from pipeline.plan import build_encoders, encoder_runtime
     from pipeline.progress import progress_bar
     from pipeline.registration.turns import model_turns
     from pipeline.parallel import job_mapper
@@ -118,6 +118,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
             _ThreadFine(tools) if fine_objects is not None else None, bar.advance, turns, mapper)
     table, poses = choose_estimates(refined, targets, diameters, p)
     sar_rows: list[dict] = []
+    vis = None
     if len(poses):
         transforms = {o: sar_transforms(read_symmetries(io.input_dir("symmetries", obj_item(o)) / "symmetries.json"),
                                         SymmetrySet.from_model_info(infos[o]), infos[o].diameter, p)
@@ -128,6 +129,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                                           plan.dataset.image_mode, image_time,
                                           lambda n: bar.set_total(n) or bar.advance)
     with io.publish() as w:
+        if vis is not None:  # SAR's encoder passes: where and in what precision (recorded, not keyed)
+            w.manifest["runtime"] = {"visual": encoder_runtime(vis)}
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
         write_table(hypotheses, w.dir / "hypotheses.parquet", metadata={"key": io.out.key})
         write_table(poses[POSE_COLUMNS].reset_index(drop=True), w.dir / "poses.parquet", metadata={"key": io.out.key})

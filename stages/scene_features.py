@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from pipeline.plan import DatasetPlan, build_encoders
+from pipeline.plan import DatasetPlan, build_encoders, encoder_runtime
 from pipeline.store import read_table, save_arrays, write_table
 
 
@@ -61,6 +61,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     table["n_valid_points"] = np.asarray([f.n_valid for f in ordered], np.int64)
     table["n_points"] = np.asarray([len(f.points) for f in ordered], np.int32)
     with io.publish() as w:
+        # where the encoders ran and in what precision: recorded, not keyed
+        w.manifest["runtime"] = {"geometric": encoder_runtime(geo_enc), "visual": encoder_runtime(vis_enc)}
         save_arrays(
             w.dir / "features.zarr", pack_candidates(ordered, p.n_points, geo_enc.dim, vis_enc.dim),
             chunks={"n_points": (max(1, n),), "cand_id": (max(1, n),)},

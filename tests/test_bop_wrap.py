@@ -192,3 +192,25 @@ def test_real_sam6d_frame_reads_back_through_the_bop_reader(tmp_path):
     assert ds.models_info()[1].diameter == pytest.approx(201.4, abs=0.5)  # LM obj 5
     assert ds.model_path(1).read_bytes() == (sam6d / "obj_000005.ply").read_bytes()
     _check_pipeline_accepts(tmp_path, name)
+
+
+def test_grey_frame_goes_to_gray_as_one_channel(frame, tmp_path):
+    """grey=True: the image is written to gray/ as a one-channel PNG (ITODD's layout), the
+    reader gives it back replicated to three channels, and `freeze datasets check` accepts
+    it; an image whose channels differ is refused."""
+    import cv2
+
+    from pipeline.config import DatasetManifest
+    from pipeline.datasets_check import check_dataset
+
+    grey = np.repeat(frame["rgb"][..., :1], 3, axis=2)
+    kw = dict(depth_mm=frame["depth"], K=K, model_path=frame["model"], mask=frame["mask"])
+    ds_dir = wrap_frame(tmp_path, "grey", rgb=grey, grey=True, **kw)
+    scene = ds_dir / "test" / "000001"
+    written = cv2.imread(str(scene / "gray" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert written.ndim == 2 and np.array_equal(written, grey[..., 0]) and not (scene / "rgb").exists()
+    assert np.array_equal(BopDataset(ds_dir).load_rgb(1, 0), grey)
+    man = DatasetManifest(name="grey", kind="bop", prior="detections/estimate_grey-test.json", image_dir="gray")
+    assert check_dataset(tmp_path, man).errors == []
+    with pytest.raises(ValueError, match="channels differ"):
+        wrap_frame(tmp_path, "colour", rgb=frame["rgb"], grey=True, **kw)

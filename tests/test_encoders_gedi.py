@@ -194,6 +194,7 @@ from pipeline.encoders.gedi import (  # noqa: E402
     fold_layers,
     load_gedi_net,
     local_reference_frame,
+    save_random_checkpoint,
     torch_threads,
 )
 from pipeline.encoders.registry import build_encoder, known_encoders  # noqa: E402
@@ -214,22 +215,7 @@ def gedi_weights(tmp_path_factory):
     """Random weights saved in the official checkpoint layout, with batch-norm statistics
     calibrated on random patches (as training would leave them; with the default
     statistics a random net maps every patch to almost the same descriptor)."""
-    torch.manual_seed(0)
-    net = GeDiNet()
-    for m in net.modules():
-        if isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)):
-            m.momentum = None  # cumulative average
-    shapes = torch.rand(24, 3, 1) * 1.5 + 0.1
-    bend = torch.rand(24, 1, 1) - 0.5
-    xy = torch.rand(24, 2, 256) * 2 - 1
-    patches = torch.cat([xy, bend * (xy[:, :1] ** 2 - xy[:, 1:] ** 2)], 1) * shapes
-    net.train()
-    with torch.no_grad():
-        net(patches)
-    net.eval()
-    path = tmp_path_factory.mktemp("gedi") / "chkpt.tar"
-    torch.save({"epoch": 3, STATE_KEY: net.state_dict()}, path)
-    return path
+    return save_random_checkpoint(tmp_path_factory.mktemp("gedi") / "chkpt.tar", seed=0, extra={"epoch": 3})
 
 
 def test_network_has_official_parameter_names(gedi_weights):

@@ -390,3 +390,116 @@ def test_real_linemod_frame_gives_a_pose_inside_the_box(tmp_path):
     assert ds.load_rgb(1, 0).shape == (480, 640, 3) and np.array_equal(ds.scene_camera(1)[0].K, K)
     (det,) = load_detections(tmp_path / "out" / "bop" / "detections" / "estimate_obj000005-test.json")
     assert det.bbox == bbox and det.mask().sum() > 1000
+
+
+# ------------------------------------------------ encoders, device, grey images, units
+
+
+def _cli_args(case: dict, out: Path, *extra: str, rgb: Path | None = None, model: Path | None = None) -> list[str]:
+    return ["estimate", "--model", str(model or case["model"]), "--rgb", str(rgb or case["rgb"]),
+            "--depth", str(case["depth"]), "--camera", str(case["camera"]), "--mask", str(case["mask"]),
+            "--out", str(out), *extra]
+
+
+def test_grey_images_are_detected(tmp_path):
+    import cv2
+
+    from pipeline.bop.dataset import save_rgb
+
+    rng = np.random.default_rng(0)
+    colour = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    grey = colour[..., 1]
+    save_rgb(tmp_path / "colour.png", colour)
+    cv2.imwrite(str(tmp_path / "one.png"), grey)
+    cv2.imwrite(str(tmp_path / "one.jpg"), grey)
+    cv2.imwrite(str(tmp_path / "three.png"), np.repeat(grey[..., None], 3, axis=2))
+    cv2.imwrite(str(tmp_path / "three.jpg"), np.repeat(grey[..., None], 3, axis=2))
+    assert est.load_rgb_and_mode(tmp_path / "colour.png")[1] is None
+    for name, why in (("one.png", "single-channel"), ("one.jpg", "single-channel"), ("three.png", "identical"),
+                      ("three.jpg", "identical")):
+        rgb, said = est.load_rgb_and_mode(tmp_path / name)
+        assert said is not None and why in said, name
+        assert rgb.shape == (24, 32, 3) and np.array_equal(rgb, est.load_rgb(tmp_path / name))
+    # the frame's dataset manifest declares a grey frame as grey datasets are declared
+    from pipeline.config import DatasetManifest
+    from pipeline.estimate.frame import dataset_manifest
+
+    assert DatasetManifest(**dataset_manifest("f", 32, 24, "gray")).image_mode == "gray"
+    assert DatasetManifest(**dataset_manifest("f", 32, 24)).image_mode == "rgb"
+
+
+def test_encoder_and_device_flags_are_config_overrides(case, tmp_path, monkeypatch):
+    from pipeline.estimate_cli import merge_flags
+
+    assert merge_flags({"visual": "colortex", "k": "1"}, visual="colortex", geometric="gedi", device=None) == \
+        {"k": "1", "visual_encoder": "colortex", "geometric_encoder": "gedi"}
+    assert merge_flags(None, device="cuda") == {"device": "cuda"}
+    with pytest.raises(EstimateError, match="--visual dinov2-vitl14 conflicts with --config visual_encoder=rgb"):
+        merge_flags({"visual_encoder": "rgb"}, visual="dinov2-vitl14")
+    # through the command: one line, exit 1, nothing run
+    monkeypatch.setenv("FREEZE_CACHE", str(tmp_path / "cache"))
+    result = CliRunner().invoke(_cli(), _cli_args(case, tmp_path / "out", "--visual", "rgb", "-c", "visual=colortex"))
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit)
+    [line] = [ln for ln in result.output.splitlines() if "error" in ln]
+    assert line == "error: --visual rgb conflicts with --config visual=colortex: give one of them"
+    result = CliRunner().invoke(_cli(), _cli_args(case, tmp_path / "out", "--device", "tpu"))
+    assert result.exit_code == 2 and "tpu" in result.output  # not a choice
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_model_in_metres_is_one_line_through_the_cli(case, tmp_path, monkeypatch):
+    import trimesh
+
+    metres = tmp_path / "metres.ply"
+    m = trimesh.load(case["model"], process=False)
+    m.apply_scale(0.001)  # the case's truck, in metres
+    m.export(metres)
+    monkeypatch.setenv("FREEZE_CACHE", str(tmp_path / "cache"))
+    result = CliRunner().invoke(_cli(), _cli_args(case, tmp_path / "out", model=metres))
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output  # no traceback
+    assert "Traceback" not in result.output
+    [line] = [ln for ln in result.output.splitlines() if ln.startswith("error:")]
+    assert str(metres) in line and "looks like metres" in line and line.endswith("pass --model-scale 1000")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.slow
+def test_grey_frame_gets_grey_templates_and_pose_json_names_its_encoders(case, tmp_path, monkeypatch):
+    """A grey image (saved single-channel) makes a grey frame: its templates are grey
+    (R == G == B) where the colour frame's are not. The encoders chosen by flag reach the
+    run and pose.json says which ran, in the sentence the run printed at its start."""
+    import cv2
+    import yaml
+
+    from pipeline.store import load_arrays
+
+    grey = cv2.cvtColor(est.load_rgb(case["rgb"]), cv2.COLOR_RGB2GRAY)
+    cv2.imwrite(str(tmp_path / "grey.png"), grey)
+    monkeypatch.setenv("FREEZE_CACHE", str(case["cache"]))
+    out = tmp_path / "grey"
+    result = CliRunner().invoke(_cli(), _cli_args(case, out, "--visual", "colortex-intensity", "--device", "cpu",
+                                                  *FAST_ARGS, rgb=tmp_path / "grey.png"))
+    assert result.exit_code == 0, result.output
+    said = result.output.replace("\n", "")
+    assert "grey image detected (a single-channel image)" in said
+    assert said.count("stand-in") == 1 and "run with --geometric gedi" in said  # fpfh is; colortex-intensity is not
+    rec = json.loads((out / "pose.json").read_text())
+    assert rec["encoders"]["geometric"] == "fpfh" and rec["encoders"]["visual"] == "colortex-intensity"
+    assert rec["encoders"]["device"] == "cpu" and rec["inputs"]["image_mode"] == "gray"
+    assert rec["note"].startswith("fpfh + colortex-intensity: fpfh is a weight-free stand-in for the paper's GeDi")
+    assert yaml.safe_load((out / "bop" / "model.yaml").read_text())["image_dir"] == "gray"
+    # the image is in gray/, one channel, as ITODD's (and `freeze datasets check` expects)
+    written = cv2.imread(str(out / "bop" / "model" / "test" / "000001" / "gray" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert written is not None and written.ndim == 2 and np.array_equal(written, grey)
+    assert not (out / "bop" / "model" / "test" / "000001" / "rgb").exists()
+    templates = load_arrays(out / "render_templates" / "templates.zarr", ["rgb"])["rgb"]
+    assert (templates > 0).any() and (templates[..., 0] == templates[..., 1]).all() \
+        and (templates[..., 1] == templates[..., 2]).all()
+    # the colour frame (default encoders; its model side from the cache of the tests above, or built now)
+    colour = _run(case, mask=case["mask"])
+    assert colour.record["inputs"]["image_mode"] == "rgb" and colour.record["encoders"]["visual"] == "colortex"
+    assert colour.record["note"].startswith("fpfh + colortex: weight-free stand-ins for the paper's GeDi + DINOv2 "
+                                            "ViT-L/14; fetch those with `freeze weights fetch gedi dinov2-vitl14`")
+    rgb = load_arrays(colour.artifacts["render_templates"] / "templates.zarr", ["rgb"])["rgb"].astype(int)
+    assert (np.abs(rgb[..., 0] - rgb[..., 1]) > 10).mean() > 0.01  # the truck's colours
+    assert colour.artifacts["render_templates"] != out / "render_templates"

@@ -7,7 +7,7 @@
     <name>/models/models_info.json              diameter, min_*, size_* (mm)
     <name>/test_targets_bop19.json              one target, inst_count 1
     <name>/test/<scene_id:06d>/scene_camera.json
-    <name>/test/<scene_id:06d>/rgb/<im_id:06d>.png      (lossless)
+    <name>/test/<scene_id:06d>/rgb/<im_id:06d>.png      (lossless; gray/, one channel, for a grey image)
     <name>/test/<scene_id:06d>/depth/<im_id:06d>.png    uint16, depth_mm = value * depth_scale
     <name>/test/<scene_id:06d>/scene_gt.json    only when a ground-truth pose is given
     detections/<detector>_<name>-test.json      one detection, score 1.0 (the localisation prior)
@@ -37,6 +37,7 @@ from .dataset import (
     save_depth_png,
     save_rgb,
     write_camera,
+    write_image,
     write_models_info,
     write_scene_camera,
     write_scene_gt,
@@ -172,6 +173,7 @@ def wrap_frame(
     gt_R: np.ndarray | None = None,
     gt_t: np.ndarray | None = None,
     overwrite: bool = False,
+    grey: bool = False,
 ) -> Path:
     """Write one frame as the BOP dataset ``<out_root>/<name>`` plus its prior (module docstring).
 
@@ -187,7 +189,8 @@ def wrap_frame(
     detection file are written under temporary names and renamed into place
     (:func:`pipeline.store.atomic_dir`, :func:`pipeline.store.atomic_path`); an existing
     dataset or detection file with other contents raises FileExistsError unless
-    ``overwrite``. Returns ``<out_root>/<name>``.
+    ``overwrite``. grey: the image is grey (its three channels equal): written to
+    ``gray/`` as a one-channel PNG, as ITODD's images are. Returns ``<out_root>/<name>``.
     """
     name = check_name(name)
     if not DETECTOR_RE.match(detector):
@@ -195,6 +198,8 @@ def wrap_frame(
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if grey and not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2])):
+        raise ValueError("grey=True but the image's three channels differ")
     H, W = rgb.shape[:2]
     depth = np.asarray(depth_mm, np.float64)
     if depth.shape != (H, W):
@@ -224,7 +229,7 @@ def wrap_frame(
     dest, det_dest = out_root / name, detections_path(out_root, name, detector)
     try:
         _write_frame(dest, det_dest, rgb, depth, K, scale, model_path, model_scale, det_mask, bbox, obj_id,
-                     scene_id, im_id, gt_R, gt_t, overwrite)
+                     scene_id, im_id, gt_R, gt_t, overwrite, grey)
     except _Unchanged:  # the same frame is there already: keep it as it is
         pass
     return dest
@@ -236,7 +241,7 @@ class _Unchanged(Exception):
 
 def _write_frame(dest: Path, det_dest: Path, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray,
                  scale: float, model_path, model_scale: float, det_mask: np.ndarray, bbox, obj_id: int,
-                 scene_id: int, im_id: int, gt_R, gt_t, overwrite: bool) -> None:
+                 scene_id: int, im_id: int, gt_R, gt_t, overwrite: bool, grey: bool = False) -> None:
     """The writing part of :func:`wrap_frame`."""
     H, W = rgb.shape[:2]
     with atomic_path(det_dest) as det_tmp, atomic_dir(dest) as ds:
@@ -246,7 +251,10 @@ def _write_frame(dest: Path, det_dest: Path, rgb: np.ndarray, depth: np.ndarray,
         write_targets(ds / "test_targets_bop19.json", [Target(scene_id, im_id, obj_id, 1)])
         scene = ds / "test" / f"{scene_id:06d}"
         write_scene_camera(scene / "scene_camera.json", {im_id: CameraInfo(K, scale, W, H)})
-        save_rgb(scene / "rgb" / f"{im_id:06d}.png", rgb)
+        if grey:
+            write_image(scene / "gray" / f"{im_id:06d}.png", rgb[..., 0])
+        else:
+            save_rgb(scene / "rgb" / f"{im_id:06d}.png", rgb)
         save_depth_png(scene / "depth" / f"{im_id:06d}.png", depth, scale)
         if gt_R is not None:
             R = np.asarray(gt_R, np.float64).reshape(3, 3)

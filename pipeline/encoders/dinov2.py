@@ -1,8 +1,8 @@
 """``dinov2``: dense DINOv2 patch tokens (visual encoder), run through ``transformers``.
 
 Models: ``vits14``, ``vitb14``, ``vitl14``, ``vitg14`` and their register variants
-``vits14_reg`` ... (``Dinov2WithRegistersModel``, 4 register tokens). Weights are never
-downloaded; ``weights`` is one of
+``vits14_reg`` ... (``Dinov2WithRegistersModel``, 4 register tokens). Weights are not
+downloaded unless the run allows it (``allow_download``, below); ``weights`` is one of
 
 - a local directory in the Hugging Face layout (``config.json`` plus
   ``model.safetensors`` or ``pytorch_model.bin``, e.g. a copy of
@@ -20,7 +20,14 @@ downloaded; ``weights`` is one of
 
 Relative ``weights`` paths are taken from the weights folder.
 
-A missing file fails when the encoder is built, naming the file and where to put it.
+A missing file fails when the encoder is built, naming the file and where to put it,
+unless ``allow_download`` is true (``--config allow_download=true``) and ``weights`` is
+None: then the model is loaded from the Hugging Face hub through transformers,
+``from_pretrained("facebook/<hf_dirname(model)>", cache_dir=<weights folder>/hub)``, at
+build time, and later builds find the snapshot in that cache without the network. The
+snapshot is a Hugging Face directory like any other, keyed on the checksum of its
+``config.json`` and weight files (so a download and a local copy of the same files share
+their artifacts).
 
 Encoding: the (B, S, S, 3) uint8 crops are scaled to [0, 1], normalised with the
 ImageNet mean and std, and passed through the ViT under ``torch.inference_mode``
@@ -31,7 +38,9 @@ in float32, ``"auto"`` (default) picks bf16 when the hardware has it (CUDA with 
 or a CPU whose ``/proc/cpuinfo`` lists ``amx_bf16`` or ``avx512_bf16``) and fp32
 otherwise; bf16 requested on hardware without it falls back to fp32 with a warning.
 The precision actually used is part of ``cache_params()``, together with the model,
-the input size and a SHA-1 of the weights.
+the input size and a SHA-1 of the weights. The device is not: fp32 on CPU and on CUDA
+give the same features up to float rounding (the stages record the device in their
+manifests instead, ``pipeline.plan.encoder_runtime``).
 
 The model itself is loaded lazily on the first :meth:`Dinov2Encoder.encode`, so that
 building the encoder at DAG-planning time only checks the files (and hashes them once
@@ -143,6 +152,82 @@ def weights_status(
             "path": str(found or places[0]), "found": found is not None, "looked_in": [str(p) for p in places]}
 
 
+def manifest_name(model: str) -> str:
+    """The encoder manifest of ``model`` by the naming of ``manifests/encoders/``, e.g.
+    ``dinov2-vits14`` or ``dinov2-vitb14-reg`` (for messages naming what to fetch)."""
+    arch, reg = parse_model_name(model)
+    return f"dinov2-{arch}{'-reg' if reg else ''}"
+
+
+# --- the Hugging Face hub, only with allow_download ----------------------------------
+
+HUB_SUBDIR = "hub"  # in the weights folder: the transformers cache of downloaded models
+
+
+def hub_repo(model: str) -> str:
+    """The Hugging Face repository of ``model``, e.g. ``facebook/dinov2-small``."""
+    return f"facebook/{hf_dirname(model)}"
+
+
+def hub_cache_dir(weights_dir: str | os.PathLike | None = None) -> Path:
+    """Where downloaded models are cached: ``<weights folder>/hub``."""
+    return resolve_weights_dir(weights_dir) / HUB_SUBDIR
+
+
+def hub_snapshot(model: str, weights_dir: str | os.PathLike | None = None) -> Path | None:
+    """The snapshot folder of :func:`hub_repo` in the hub cache (the one ``refs/main``
+    names, else the newest) when it holds a usable model, else None. Nothing is fetched."""
+    repo_dir = hub_cache_dir(weights_dir) / ("models--" + hub_repo(model).replace("/", "--"))
+    snapshots = repo_dir / "snapshots"
+    if not snapshots.is_dir():
+        return None
+    candidates = []
+    ref = repo_dir / "refs" / "main"
+    if ref.is_file():
+        candidates.append(snapshots / ref.read_text().strip())
+    candidates += sorted((p for p in snapshots.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime, reverse=True)
+    return next((p for p in candidates if _usable(p)), None)
+
+
+def _hub_offline() -> bool:
+    """Whether huggingface_hub / transformers are told to stay offline."""
+    flags = [os.environ.get(v, "") for v in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")]
+    if any(f.strip().lower() in ("1", "true", "yes", "on") for f in flags):
+        return True
+    try:  # read by huggingface_hub when it was imported
+        from huggingface_hub import constants
+    except ImportError:
+        return False
+    return bool(getattr(constants, "HF_HUB_OFFLINE", False))
+
+
+def download_from_hub(model: str, weights_dir: str | os.PathLike | None = None) -> tuple[Path, torch.nn.Module]:
+    """``(snapshot folder, model)``: ``model`` loaded from the hub with transformers'
+    ``from_pretrained`` into the weights folder's hub cache. Fails with
+    :class:`WeightsNotFound` (saying why and how to fetch the weights otherwise) when the
+    hub cannot be reached or the download left no usable snapshot."""
+    from transformers import Dinov2Model, Dinov2WithRegistersModel
+
+    _, reg = parse_model_name(model)
+    cls = Dinov2WithRegistersModel if reg else Dinov2Model
+    repo, cache = hub_repo(model), hub_cache_dir(weights_dir)
+    fetch = (f"fetch the weights with `freeze weights fetch {manifest_name(model)}` on a machine with network "
+             f"access, or put them in the weights folder yourself (see `freeze encoders`)")
+    try:
+        net = cls.from_pretrained(repo, cache_dir=str(cache))
+    except Exception as exc:  # transformers/huggingface_hub raise OSError, or their HTTP errors
+        why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        where = ("the hub could not be reached: offline mode is on (HF_HUB_OFFLINE or TRANSFORMERS_OFFLINE is set)"
+                 if _hub_offline() else f"the hub could not be reached or refused it ({type(exc).__name__}: {why})")
+        raise WeightsNotFound(f"dinov2: allow_download is on, but {repo} could not be loaded into {cache}: {where}; "
+                              f"{fetch}", [cache]) from None
+    snapshot = hub_snapshot(model, weights_dir)
+    if snapshot is None:
+        raise WeightsNotFound(f"dinov2: {repo} was loaded from the hub, but no snapshot with config.json and weights "
+                              f"is in {cache} (transformers cached it elsewhere?); {fetch}", [cache])
+    return snapshot, net
+
+
 def _hf_weight_files(directory: Path) -> list[Path]:
     files: set[Path] = set()
     for pattern in _HF_WEIGHT_PATTERNS:
@@ -186,6 +271,23 @@ def cpu_supports_bf16() -> bool:
     except OSError:
         pass
     return False
+
+
+def resolve_device(device: str, who: str = "dinov2") -> str:
+    """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; ``"cpu"``,
+    ``"cuda"``, ``"cuda:i"`` as given, after checking that a CUDA device is visible
+    (``ValueError`` naming ``who`` and the device otherwise)."""
+    device = str(device)
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cpu":
+        return device
+    if re.fullmatch(r"cuda(:\d+)?", device) is None:
+        raise ValueError(f"{who}: device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"{who}: device {device!r} was asked for, but no CUDA device is visible to torch "
+                         "(torch.cuda.is_available() is false); use device 'auto' or 'cpu'")
+    return device
 
 
 def bf16_supported(device: str) -> bool:
@@ -345,8 +447,11 @@ class Dinov2Encoder(VisualEncoder):
     weights_dir: the weights folder (default ``$FREEZE_WEIGHTS`` or ``<project>/weights``).
     input_size: crop side S, a multiple of 14 (224 as in FreeZe).
     precision: ``auto`` | ``bf16`` | ``fp32``.
-    device: ``auto`` (cuda if available, else cpu), ``cpu``, ``cuda``, ``cuda:1``...
+    device: ``auto`` (cuda if available, else cpu), ``cpu``, ``cuda``, ``cuda:1``... (the
+    run's ``--config device=cpu|cuda`` replaces the manifest's value); not keyed.
     batch_size: crops per forward pass.
+    allow_download: with ``weights`` None and no local weights, load the model from the
+    Hugging Face hub into ``<weights folder>/hub`` (the run's ``--config allow_download=true``).
     """
 
     name = "dinov2"
@@ -361,6 +466,7 @@ class Dinov2Encoder(VisualEncoder):
         device: str = "auto",
         batch_size: int = 8,
         weights_dir: str | None = None,
+        allow_download: bool = False,
     ) -> None:
         self.arch, self.registers = parse_model_name(model)
         self.model = self.arch + ("_reg" if self.registers else "")
@@ -370,21 +476,32 @@ class Dinov2Encoder(VisualEncoder):
             raise ValueError(f"dinov2: batch_size must be >= 1, got {batch_size}")
         self.input_size = int(input_size)
         self.batch_size = int(batch_size)
-        self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else str(device)
+        self.device = resolve_device(device)
         self.precision = resolve_precision(precision, self.device)
+        self._fetched: torch.nn.Module | None = None  # a model just loaded from the hub
 
         path, places = find_weights(self.model, weights, weights_dir)
+        if path is None and weights is None and allow_download:
+            path = hub_snapshot(self.model, weights_dir)  # downloaded by an earlier run
+            if path is None:
+                path, self._fetched = download_from_hub(self.model, weights_dir)
         if path is None:
             asked = places[0]
             if weights is None:
+                cached = hub_snapshot(self.model, weights_dir)
                 raise WeightsNotFound(
-                    f"dinov2: weights for {self.model} not found. Put the official file "
+                    f"dinov2: weights for {self.model} not found. Fetch them with `freeze weights fetch "
+                    f"{manifest_name(self.model)}`, or put the official file "
                     f"{official_filename(self.model)} (from https://dl.fbaipublicfiles.com/dinov2/) or a local "
-                    f"Hugging Face copy of facebook/{hf_dirname(self.model)} in one of: "
+                    f"Hugging Face copy of {hub_repo(self.model)} in one of: "
                     + ", ".join(str(p) for p in places)
                     + " (the weights folder is --config weights_dir=DIR, $FREEZE_WEIGHTS or <project>/weights; "
                     "the last is the torch hub cache, $TORCH_HOME/hub/checkpoints), or set the encoder param "
-                    "'weights'. Nothing is downloaded.", places)
+                    "'weights'. Nothing is downloaded unless the run says --config allow_download=true (then "
+                    f"transformers loads {hub_repo(self.model)} from the Hugging Face hub into "
+                    f"{hub_cache_dir(weights_dir)})"
+                    + (f"; a copy downloaded earlier is in {cached}, which that option uses" if cached else "")
+                    + ".", places)
             if asked.is_dir():
                 raise WeightsNotFound(
                     f"dinov2: {asked} is not a Hugging Face model directory: it needs config.json and "
@@ -433,7 +550,10 @@ class Dinov2Encoder(VisualEncoder):
 
     def _load(self) -> torch.nn.Module:
         if self._net is None:
-            net = load_hf_dir(self.weights_path) if self.hf_dir else load_official(self.weights_path, self.model)
+            if self._fetched is not None:  # loaded from the hub when the encoder was built
+                net, self._fetched = self._fetched, None
+            else:
+                net = load_hf_dir(self.weights_path) if self.hf_dir else load_official(self.weights_path, self.model)
             self._net = net.eval().to(self.device)
         return self._net
 

@@ -21,7 +21,21 @@ for point cloud registration", TPAMI 2022) describes a keypoint by the points ar
    a head to a 32-d L2-normalised descriptor.
 
 Multi-scale as in the paper: radii 0.3 and 0.4 of the object diameter, one 32-d
-descriptor each, concatenated (64-d). Everything runs on CPU, or CUDA when present.
+descriptor each, concatenated (64-d).
+
+Device. Everything that is torch runs on the encoder's ``device`` (``auto``: CUDA when
+present; the run's ``--config device=cpu|cuda`` replaces the manifest's value): the
+local reference frames and patches (float64), farthest-point sampling, ball query and
+the network (its folded layers, :class:`GeDiInference`, folded on the CPU so that every
+device gets the same weights; the module ``GeDiEncoder.net`` stays on the CPU as the
+reference the tests compare with). The neighbour search of step 1 is scipy's k-d tree
+and the random draws are numpy's, on the CPU, on every device (they are cheap next to
+the network, and keeping them there keeps the draws the same everywhere). Precision is
+float32 on every device, with no autocast: sampling and grouping reproduce the
+reference kernels' float32 distances bit for bit, and a bf16 network would change the
+features the next level groups. The device is not part of ``cache_params()``: CPU and
+CUDA give the same descriptors up to float rounding (the stages record the device in
+their manifests instead).
 
 Inference (:class:`GeDiInference`) computes the same function as ``GeDiNet.forward``
 with less work (``benchmarks/gedi_speed.py``, ``benchmarks/results/gedi_speed.md``):
@@ -73,6 +87,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
+from pipeline.encoders.dinov2 import resolve_device
 from pipeline.encoders.gedi_ops import (
     ball_query,
     ball_query_hits,
@@ -206,6 +221,32 @@ class GeDiNet(nn.Module):
         return F.normalize(self.fc_layer(feats.squeeze(-1)), p=2, dim=1)
 
 
+def save_random_checkpoint(path: str | os.PathLike, seed: int = 0, extra: dict | None = None) -> Path:
+    """Write random GeDi weights at ``path`` in the official checkpoint layout
+    (``{STATE_KEY: state_dict}``, plus ``extra`` entries): stand-in weights for the tests,
+    the benchmarks and ``scripts/gpu_check.sh``, which cost what the real ones do.
+
+    The batch-norm statistics are set by one pass over 24 random curved patches (seeded
+    by ``seed``), as training would leave them: with the initial statistics a random
+    network maps every patch to nearly the same descriptor, and comparisons would say
+    little. Returns ``path``."""
+    torch.manual_seed(seed)
+    net = GeDiNet()
+    for m in net.modules():
+        if isinstance(m, (nn.BatchNorm1d, nn.BatchNorm2d)):
+            m.momentum = None  # the statistics of this one pass, not a running blend with the initial ones
+    scales = torch.rand(24, 3, 1) * 1.5 + 0.1
+    bend = torch.rand(24, 1, 1) - 0.5
+    xy = torch.rand(24, 2, 256) * 2 - 1
+    net.train()
+    with torch.no_grad():
+        net(torch.cat([xy, bend * (xy[:, :1] ** 2 - xy[:, 1:] ** 2)], 1) * scales)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({**(extra or {}), STATE_KEY: net.eval().state_dict()}, path)
+    return path
+
+
 def load_gedi_net(path: str | os.PathLike, device: str | torch.device = "cpu") -> GeDiNet:
     """The network with the weights of the checkpoint at ``path`` (strict, weights_only)."""
     path = Path(path)
@@ -230,7 +271,9 @@ def _missing_message(path: Path) -> str:
         "(the 3DMatch 'chkpt.tar', fetched by download_data.py of the GeDi repository into "
         "data/chkpts/3dmatch/chkpt.tar). Copy it to that path, or set the encoder's "
         "'weights' parameter in the manifest to where it is (relative paths are taken from the "
-        "weights folder: --config weights_dir=DIR, $FREEZE_WEIGHTS, or <project>/weights)."
+        "weights folder: --config weights_dir=DIR, $FREEZE_WEIGHTS, or <project>/weights). "
+        "`freeze weights fetch gedi` fetches it (--config allow_download=true does not: it only "
+        "applies to DINOv2's Hugging Face models)."
     )
 
 
@@ -347,9 +390,13 @@ class GeDiInference:
     encoder passes the cloud index of each patch point), so their rows are computed
     once. Returns descriptors (B, 32), unit norm. Fastest with one intra-op thread
     (``torch_threads(1)``), as the encoder calls it: see the module doc.
+
+    device: where the folded layers go (default: the network's device). They are folded
+    where the network is, so a network on the CPU gives the same folded weights, bit for
+    bit, to every device. Call with inputs on that device.
     """
 
-    def __init__(self, net: GeDiNet) -> None:
+    def __init__(self, net: GeDiNet, device: str | torch.device | None = None) -> None:
         if net.training:
             raise ValueError("GeDiInference: the network must be in eval mode (batch norms are folded)")
         q = net.qnet
@@ -358,6 +405,14 @@ class GeDiInference:
         self.levels = [(sa, fold_layers(sa.mlps[0])) for sa in (net.samodule1, net.samodule2)]
         self.global_level = fold_layers(net.samodule3.mlps[0])
         self.head = fold_layers(net.fc_layer)
+        if device is not None:
+
+            def move(layers: list[Dense]) -> list[Dense]:
+                return [Dense(d.weight.to(device), d.bias.to(device), d.relu) for d in layers]
+
+            self.q_points, self.q_head = move(self.q_points), move(self.q_head)
+            self.levels = [(sa, move(layers)) for sa, layers in self.levels]
+            self.global_level, self.head = move(self.global_level), move(self.head)
 
     def __call__(self, patches: torch.Tensor, point_ids: torch.Tensor | None = None) -> torch.Tensor:
         B, _, N = patches.shape
@@ -481,8 +536,10 @@ class GeDiEncoder(GeometricEncoder):
     them with its network batches, so the same value gives the same patches.
     net_batch: keypoints per network call (rounded up to a multiple of ``batch_size``);
     memory grows with it, the descriptors do not change beyond float rounding.
-    device: ``auto`` (CUDA when present), ``cpu`` or ``cuda``. seed: neighbour sampling
-    seed (outputs are deterministic).
+    device: ``auto`` (CUDA when present), ``cpu`` or ``cuda`` (see the module doc; not
+    keyed). seed: neighbour sampling seed (outputs are deterministic).
+    allow_download: accepted so that a run may allow downloads whatever its encoders;
+    ignored (GeDi's checkpoint is not on the Hugging Face hub).
     """
 
     name = "gedi"
@@ -501,6 +558,7 @@ class GeDiEncoder(GeometricEncoder):
         device: str = "auto",
         seed: int = 0,
         weights_dir: str | None = None,
+        allow_download: bool = False,
     ) -> None:
         radii = [float(r) for r in radii]
         if not radii or any(r <= 0 for r in radii):
@@ -509,13 +567,15 @@ class GeDiEncoder(GeometricEncoder):
             raise ValueError(
                 f"gedi: need 0 < n_patch <= n_lrf, batch_size > 0 and net_batch > 0, got {n_patch}, {n_lrf}, {batch_size}, {net_batch}"
             )
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
+        device = resolve_device(device, "gedi")
         self.weights = resolve_weights_path(weights, weights_dir)
-        self.net = load_gedi_net(self.weights, device)
-        self.inference = GeDiInference(self.net)
+        # the reference module stays on the CPU (tests and benchmarks compare with it);
+        # the encoder computes with its folded layers, on the device
+        self.net = load_gedi_net(self.weights, "cpu")
+        self.inference = GeDiInference(self.net, device=device)
         self.weights_sha1 = _sha1(self.weights)
         self.device = torch.device(device)
+        self.precision = "fp32"  # on every device: see the module doc
         self.radii = radii
         self.n_lrf, self.n_patch, self.batch_size, self.seed = int(n_lrf), int(n_patch), int(batch_size), int(seed)
         self.net_batch = -(-int(net_batch) // self.batch_size) * self.batch_size
@@ -559,16 +619,18 @@ class GeDiEncoder(GeometricEncoder):
         Keypoints go through the network ``net_batch`` at a time. On CPU, as many calls
         run at once as torch has threads, each on one thread (see the module doc); the
         random draws are made in order on this thread, so the result does not depend on
-        which call finishes first.
+        which call finishes first. On CUDA the calls run one after the other. The k-d
+        tree's neighbour lists and the draws (numpy) are made on the CPU on every device;
+        the frames, patches and network run on the encoder's device.
         """
         count = len(pts) if count is None else min(int(count), len(pts))
-        cloud = torch.from_numpy(pts)
+        cloud = torch.from_numpy(pts).to(self.device)
         out = np.empty((count, GEDI_DIM), dtype=np.float32)
 
         def describe(start: int, nbr_idx: np.ndarray, patch_idx: np.ndarray) -> None:
             with torch.inference_mode():
                 patches, ids = self._patches(cloud, start, nbr_idx, patch_idx, radius)
-                desc = self.inference(patches.to(self.device), ids.to(self.device))
+                desc = self.inference(patches, ids)
             out[start : start + len(desc)] = desc.cpu().numpy()
 
         calls = self._network_calls(pts, tree, radius, count)
@@ -619,9 +681,10 @@ class GeDiEncoder(GeometricEncoder):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Network inputs of keypoints ``start .. start + b`` of ``cloud`` (N, 3) float64:
         patches (b, 3, n_patch) float32 in their frames, scaled by 1/radius, and the cloud
-        index (b, n_patch) of each patch point (equal indices: equal points)."""
-        nbr = torch.from_numpy(nbr_idx)
-        pick = torch.from_numpy(patch_idx)
+        index (b, n_patch) of each patch point (equal indices: equal points), on the
+        device of ``cloud``."""
+        nbr = torch.from_numpy(nbr_idx).to(cloud.device)
+        pick = torch.from_numpy(patch_idx).to(cloud.device)
         kp = cloud[start : start + len(nbr)]
         nbrs = cloud[nbr]  # (b, n_lrf, 3) float64
         lrf = local_reference_frame(kp, nbrs, radius)

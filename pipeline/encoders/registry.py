@@ -225,11 +225,17 @@ def known_encoders() -> dict[str, EncoderKind]:
     return {name: kind for name, (kind, _) in sorted(_REGISTRY.items())}
 
 
-def build_encoder(spec: EncoderSpec | dict[str, Any], weights_dir: str | os.PathLike | None = None) -> Encoder:
+def build_encoder(spec: EncoderSpec | dict[str, Any], weights_dir: str | os.PathLike | None = None, *,
+                  device: str | None = None, allow_download: bool = False) -> Encoder:
     """Build the encoder described by ``spec`` (an :class:`EncoderSpec` or its dict).
 
     weights_dir: passed to encoders that load weights (see :func:`resolve_weights_dir`);
-    ignored by the others."""
+    ignored by the others.
+    device: the run's device (``--config device=...``): ``cpu`` or ``cuda`` replaces the
+    ``device`` param of the encoders that load weights (they are the torch ones); None or
+    ``auto`` leaves their manifests' value. The numpy/open3d encoders ignore it.
+    allow_download: passed (when true) to the encoders that load weights: DINOv2 then
+    loads missing weights from the Hugging Face hub; GeDi accepts and ignores it."""
     if not isinstance(spec, EncoderSpec):
         spec = EncoderSpec.model_validate(spec)
     _load_builtins()
@@ -240,6 +246,10 @@ def build_encoder(spec: EncoderSpec | dict[str, Any], weights_dir: str | os.Path
     params = dict(spec.params)
     if weights_dir is not None and spec.name in _WEIGHTED and "weights_dir" not in params:
         params["weights_dir"] = str(weights_dir)
+    if device not in (None, "auto") and spec.name in _WEIGHTED:
+        params["device"] = str(device)
+    if allow_download and spec.name in _WEIGHTED:
+        params["allow_download"] = True
     try:
         encoder = factory(**params)
     except TypeError as exc:

@@ -10,7 +10,7 @@ The box rule lives in :mod:`pipeline.geometry.box_points`, the pictures in
 """
 
 from .inputs import (METRE_DIAMETER_LIMIT, Camera, EstimateError, load_camera, load_depth, load_mask, load_model,
-                     load_rgb, parse_bbox, scale_warning)
+                     load_rgb, load_rgb_and_mode, parse_bbox, scale_warning)
 
 __all__ = ["METRE_DIAMETER_LIMIT", "Camera", "EstimateError", "load_camera", "load_depth", "load_mask", "load_model",
-           "load_rgb", "parse_bbox", "scale_warning"]
+           "load_rgb", "load_rgb_and_mode", "parse_bbox", "scale_warning"]

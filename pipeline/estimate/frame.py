@@ -46,39 +46,49 @@ class FrameDataset:
         return f"scene_{SCENE_ID:06d}"
 
 
-def dataset_manifest(name: str, width: int, height: int) -> dict:
-    """The manifest (as a mapping) of a wrapped frame named ``name``."""
+def dataset_manifest(name: str, width: int, height: int, image_mode: str = "rgb") -> dict:
+    """The manifest (as a mapping) of a wrapped frame named ``name``. A grey frame
+    (``image_mode="gray"``) is declared as grey datasets are (``image_dir: gray``, as
+    ITODD's manifest, its image in ``gray/``), so that its templates and SAR renders are
+    grey like the image."""
+    if image_mode not in ("rgb", "gray"):
+        raise ValueError(f"image_mode must be 'rgb' or 'gray', got {image_mode!r}")
     return {
         "name": name,
         "kind": "bop",
         "prior": f"detections/{DETECTOR}_{name}-test.json",
         "obj_ids": [OBJ_ID],
         "image_size": [int(width), int(height)],
+        **({"image_dir": "gray"} if image_mode == "gray" else {}),
         "fingerprint": "content",
     }
 
 
 def write_frame_dataset(bop_root: Path, name: str, *, rgb: np.ndarray, depth_mm: np.ndarray, K: np.ndarray,
                         model_path: Path, model_scale: float = 1.0, mask: np.ndarray | None = None,
-                        bbox: Sequence[float] | None = None, kept_mask: np.ndarray | None = None) -> FrameDataset:
+                        bbox: Sequence[float] | None = None, kept_mask: np.ndarray | None = None,
+                        image_mode: str = "rgb") -> FrameDataset:
     """Write the frame as ``<bop_root>/<name>`` (replacing a previous one of that name),
     its prior and ``<bop_root>/<name>.yaml``.
 
     rgb (H, W, 3) uint8; depth_mm (H, W) float32 mm; K (3, 3); model_path: PLY whose
     coordinates times ``model_scale`` are mm. The prior's mask is ``mask``, or, with only
     a box, the box's pixels in ``kept_mask`` (what :func:`pipeline.geometry.box_points.box_candidate_points`
-    kept); its bbox is ``bbox`` when given. Raises ValueError on bad input.
+    kept); its bbox is ``bbox`` when given. image_mode: ``"gray"`` for a grey image (see
+    :func:`dataset_manifest`). Raises ValueError on bad input.
     """
     from pipeline.bop import wrap
     from pipeline.store import atomic_write_text
 
     bop_root = Path(bop_root)
+    H, W = rgb.shape[:2]
+    text = yaml.safe_dump(dataset_manifest(name, W, H, image_mode), sort_keys=False)
     root = wrap.wrap_frame(bop_root, name, rgb=rgb, depth_mm=depth_mm, K=K, model_path=model_path,
                            model_scale=model_scale, mask=mask, bbox=bbox, kept_mask=kept_mask, obj_id=OBJ_ID,
-                           scene_id=SCENE_ID, im_id=IM_ID, detector=DETECTOR, overwrite=True)
-    H, W = rgb.shape[:2]
+                           scene_id=SCENE_ID, im_id=IM_ID, detector=DETECTOR, overwrite=True,
+                           grey=image_mode == "gray")
     manifest = bop_root / f"{name}.yaml"
     atomic_write_text(manifest, "# A frame wrapped by `freeze estimate`; run it with\n"
                                 f"#   snakemake --cores 2 bop_all --config bop_root={bop_root} datasets={manifest}\n"
-                      + yaml.safe_dump(dataset_manifest(name, W, H), sort_keys=False))
+                      + text)
     return FrameDataset(root=root, manifest=manifest, prior=wrap.detections_path(bop_root, name, DETECTOR))

@@ -110,15 +110,30 @@ def _imread(path: Path, what: str, flags: int) -> np.ndarray:
 def load_rgb(path: Path | str) -> np.ndarray:
     """(H, W, 3) uint8 RGB; grey is replicated, alpha dropped, 16-bit reduced to 8
     (the BOP reader's conversion, :func:`pipeline.bop.dataset.decoded_to_rgb`)."""
+    return load_rgb_and_mode(path)[0]
+
+
+def load_rgb_and_mode(path: Path | str) -> tuple[np.ndarray, str | None]:
+    """(the image as :func:`load_rgb` returns it, why it is grey or None for colour).
+
+    An image is grey when the file has a single channel, or when its
+    three colour channels are identical at every pixel (a grey picture saved as RGB;
+    JPEG keeps them identical). The frame's dataset manifest then says so (``image_dir:
+    gray``), and templates and SAR renders are made grey to look like it."""
     import cv2
 
     from pipeline.bop.dataset import decoded_to_rgb
 
     im = _imread(Path(path), "RGB", cv2.IMREAD_UNCHANGED)
     try:
-        return decoded_to_rgb(im, path)
+        rgb = decoded_to_rgb(im, path)
     except ValueError as e:
         raise EstimateError(str(e)) from None
+    if im.ndim == 2 or im.shape[2] == 1:
+        return rgb, "a single-channel image"
+    if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]):
+        return rgb, "its three channels are identical"
+    return rgb, None
 
 
 def load_depth(path: Path | str, depth_scale: float) -> np.ndarray:
@@ -215,9 +230,11 @@ def load_model(path: Path | str, model_scale: float = 1.0):
         mesh.apply_scale(model_scale)
     diameter = point_cloud_diameter(np.asarray(mesh.vertices))
     if diameter < METRE_DIAMETER_LIMIT:
-        raise EstimateError(
-            f"{path}: the model's diameter is {diameter:.4g} units{' after --model-scale' if model_scale != 1 else ''}; "
-            "models must be in millimetres (BOP) and this one looks like metres: pass --model-scale 1000")
+        if model_scale == 1.0:
+            raise EstimateError(f"{path}: the model's diameter is {diameter:.4g} units, too small for millimetres "
+                                f"(models must be in mm, as BOP's are); it looks like metres: pass --model-scale 1000")
+        raise EstimateError(f"{path}: the model's diameter is {diameter:.4g} mm after --model-scale {model_scale:g}, "
+                            f"too small for an object; models must be in mm: check --model-scale (1000 for metres)")
     return mesh, float(diameter)
 
 

@@ -446,6 +446,16 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "", 
     return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
 
 
+def stand_in_note(encoders: dict[str, dict[str, Any]]) -> str:
+    """The page's line on encoders that stand in for the paper's (the run's start prints
+    the same, :func:`pipeline.stand_in.stand_in_notice`); empty when none does.
+    ``encoders``: :attr:`pipeline.plan.RunPlan.encoders`."""
+    from pipeline.stand_in import stand_in_notice
+
+    notice = stand_in_notice(encoders["geometric"]["manifest"], encoders["visual"]["manifest"])
+    return f'<p class="note stand-in">{_e(notice)}</p>' if notice else ""
+
+
 def _column_means(values: Any, n: int) -> np.ndarray:
     """(n,) mean over the rows of a (rows, n) table of recalls, ignoring NaN/inf/None;
     NaN where a column has no finite value, or everywhere when the shape is not (rows, n)."""
@@ -514,6 +524,7 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
         f'<b>{_e(vis["manifest"])}</b> (<code>{_e(vis["signature"])}</code>, v{_e(vis["version"])}); refinement '
         f'<code>{_e(plan["refine"].signature)}</code>; {run_txt}. Generated {_e(generated)} from the artifacts in '
         f'<code>{_e(rp.cache / dataset)}</code>.</p>')
+    add(stand_in_note(enc))
 
     # ---- 1. AR table
     add("<h2>1. Average recall (BOP19)</h2>")
