@@ -88,12 +88,6 @@ def frame_plan(run, frame, cache: Path | None = None):
     return frame_run_plan(run, frame, cache)[frame.root.name]
 
 
-def _whole_line(steps, text: str) -> None:
-    """Print ``text`` as one line, unwrapped (it holds commands to copy), when the steps are shown."""
-    if steps.enabled:
-        steps._console.print(f"  {text}", soft_wrap=True, markup=False, highlight=False)
-
-
 def run_stages(plan, stages_items: Sequence[tuple[str, str]], steps) -> dict[str, bool]:
     """Run each (stage, item) whose artifact is not in the cache yet; stage -> reused."""
     from pipeline import store
@@ -177,7 +171,7 @@ def estimate(
         run = load_run_with_overrides(overrides)
         notice = stand_in_notice(run.geometric_encoder, run.visual_encoder, form="estimate")
         if notice:
-            _whole_line(steps, notice)
+            steps.line(notice)
         cam = load_camera(camera)
         for name, p in (("model", model), ("RGB", rgb), ("depth", depth)):
             if not Path(p).is_file():
@@ -205,8 +199,8 @@ def estimate(
     steps.note(f"camera: {cam.form}; depth scale {scale:g} mm/unit ({scale_src}); image {W}x{H}; "
                f"model diameter {diameter:.1f} mm; encoders {geo.signature()} + {vis.signature()}")
     if grey_why:
-        _whole_line(steps, f"grey image detected ({grey_why}): the frame is a grey dataset (image_dir: gray), so "
-                           "templates and SAR renders are grey too")
+        steps.line(f"grey image detected ({grey_why}): the frame is a grey dataset (image_dir: gray), so "
+                   "templates and SAR renders are grey too")
     warning = scale_warning(depth_im, cam.K, box, diameter)
     if warning:
         steps.warn(warning)

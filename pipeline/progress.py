@@ -63,6 +63,12 @@ class StepTimer:
         if self.enabled:
             self._console.print(f"  [yellow]warning:[/] {text}")
 
+    def line(self, text: str) -> None:
+        """``text`` as one line, never wrapped and without markup (it may hold a command
+        to copy, or brackets)."""
+        if self.enabled:
+            self._console.print(f"  {text}", soft_wrap=True, markup=False, highlight=False)
+
     @contextmanager
     def __call__(self, name: str) -> Iterator[None]:
         import time
