@@ -56,12 +56,9 @@ def _median_time(fn, repeat: int) -> float:
 
 
 def _gedi_weights(folder: Path) -> Path:
-    from pipeline.encoders.gedi import STATE_KEY, GeDiNet
+    from pipeline.encoders.gedi import save_random_checkpoint
 
-    torch.manual_seed(0)
-    path = folder / "chkpt.tar"
-    torch.save({STATE_KEY: GeDiNet().state_dict()}, path)
-    return path
+    return save_random_checkpoint(folder / "chkpt.tar")
 
 
 def _dinov2_weights(folder: Path, model: str, name: str | None = None) -> Path:

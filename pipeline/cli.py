@@ -81,17 +81,17 @@ def encoders(
     """List the encoder manifests: kind, dimension, version, the weights each needs
     (found or not, and the exact path looked in), and which are the paper's (GeDi +
     DINOv2 ViT-L/14) and which weight-free stand-ins for them."""
-    from pipeline.config import MANIFEST_DIR, ManifestError, load_encoder_manifest
+    from pipeline.config import ManifestError, encoder_manifest_names, load_encoder_manifest
     from pipeline.encoders.registry import (EncoderSpec, WeightsNotFound, build_encoder, known_encoders, needs_weights,
                                             resolve_weights_dir)
     from pipeline.stand_in import FETCH, paper_configuration, paper_line
 
     wdir = resolve_weights_dir(weights_dir)
     rows = []
-    for path in sorted((MANIFEST_DIR / "encoders").glob("*.yaml")):
-        row: dict = {"manifest": path.stem}
+    for name in encoder_manifest_names():
+        row: dict = {"manifest": name}
         try:
-            man = load_encoder_manifest(path.stem)
+            man = load_encoder_manifest(name)
             row.update(encoder=man.encoder, kind=man.kind, paper=man.paper, stand_in=man.stand_in,
                        role="paper" if man.paper else "stand-in" if man.stand_in else "")
             enc = build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=wdir)

@@ -390,10 +390,15 @@ def _validate(model: type[BaseModel], data: Mapping[str, Any], source: str):
         raise ManifestError(f"{source}: invalid manifest\n" + "\n".join(lines)) from None
 
 
+def encoder_manifest_names(manifest_dir: Path = MANIFEST_DIR) -> list[str]:
+    """The names of the encoder manifests, ``<manifest_dir>/encoders/<name>.yaml``, sorted."""
+    return sorted(p.stem for p in (Path(manifest_dir) / "encoders").glob("*.yaml"))
+
+
 def load_encoder_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> EncoderManifest:
     path = Path(manifest_dir) / "encoders" / f"{name}.yaml"
     if not path.exists():
-        known = sorted(p.stem for p in (Path(manifest_dir) / "encoders").glob("*.yaml"))
+        known = encoder_manifest_names(manifest_dir)
         raise ManifestError(f"{path}: no encoder manifest named '{name}' (known: {', '.join(known)})")
     return _validate(EncoderManifest, _read_yaml(path), str(path))
 

@@ -370,17 +370,14 @@ def _run_device(run: cfg.RunManifest) -> str | None:
     return device
 
 
-def _build(name: str, kind: str, run: cfg.RunManifest | None, weights_dir: str | None = None):
-    """The encoder of manifest ``name`` built with the run's weights folder, device and
-    download permission (only ``weights_dir`` without a run)."""
+def _build(name: str, kind: str, run: cfg.RunManifest):
+    """(manifest, encoder) of the encoder manifest ``name``, built with the run's weights
+    folder, device and download permission."""
     from pipeline.encoders.registry import EncoderSpec, build_encoder
 
     man = _encoder_manifest(name, kind)
-    spec = EncoderSpec(name=man.encoder, params=dict(man.params))
-    if run is None:
-        return man, build_encoder(spec, weights_dir=weights_dir)
-    return man, build_encoder(spec, weights_dir=run.weights_dir, device=_run_device(run),
-                              allow_download=run.allow_download)
+    return man, build_encoder(EncoderSpec(name=man.encoder, params=dict(man.params)), weights_dir=run.weights_dir,
+                              device=_run_device(run), allow_download=run.allow_download)
 
 
 def encoder_runtime(enc: Any) -> dict[str, Any]:
@@ -391,11 +388,10 @@ def encoder_runtime(enc: Any) -> dict[str, Any]:
             "precision": getattr(enc, "precision", None)}
 
 
-def _encoder_entry(name: str, kind: str, weights_dir: str | None = None,
-                   run: cfg.RunManifest | None = None) -> dict[str, Any]:
+def _encoder_entry(name: str, kind: str, run: cfg.RunManifest) -> dict[str, Any]:
     """Cache-relevant description of an encoder manifest: registry name, version, params
     (and, not keyed, ``runtime``: the device and precision it runs with here)."""
-    man, enc = _build(name, kind, run, weights_dir)
+    man, enc = _build(name, kind, run)
     return {
         "manifest": cfg.encoder_manifest_name(name, kind),
         "encoder": man.encoder,
@@ -537,8 +533,8 @@ class RunPlan:
     @cached_property
     def encoders(self) -> dict[str, dict[str, Any]]:
         return {
-            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric", run=self.run),
-            "visual": _encoder_entry(self.run.visual_encoder, "visual", run=self.run),
+            "geometric": _encoder_entry(self.run.geometric_encoder, "geometric", self.run),
+            "visual": _encoder_entry(self.run.visual_encoder, "visual", self.run),
         }
 
     @cached_property

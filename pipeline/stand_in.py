@@ -51,13 +51,13 @@ def paper_configuration(manifest_dir: Path = cfg.MANIFEST_DIR) -> dict[str, tupl
     """kind -> (manifest name, readable name) of the encoder manifests with ``paper: true``
     (the first by name when several of a kind are; a kind with none is left out)."""
     out: dict[str, tuple[str, str]] = {}
-    for path in sorted((Path(manifest_dir) / "encoders").glob("*.yaml")):
+    for name in cfg.encoder_manifest_names(manifest_dir):
         try:
-            man = cfg.load_encoder_manifest(path.stem, manifest_dir)
+            man = cfg.load_encoder_manifest(name, manifest_dir)
         except cfg.ManifestError:
             continue
         if man.paper and man.kind not in out:
-            out[man.kind] = (path.stem, display_name(man))
+            out[man.kind] = (name, display_name(man))
     return {k: out[k] for k in KINDS if k in out}
 
 

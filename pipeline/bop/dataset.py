@@ -212,6 +212,12 @@ def parse_models_info(path: Path, content: Any) -> dict[int, ModelInfo]:
 # ---------------------------------------------------------------------------- reader
 
 
+def is_grey(rgb: np.ndarray) -> bool:
+    """Whether an (H, W, 3) image's three channels are equal at every pixel (a grey
+    picture, as :func:`decoded_to_rgb` makes of a one-channel file)."""
+    return bool(np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]))
+
+
 def decoded_to_rgb(im: np.ndarray, path: Path | str) -> np.ndarray:
     """An image as ``cv2.imread(..., IMREAD_UNCHANGED)`` returns it -> (H, W, 3) uint8 RGB:
     16-bit grey (ITODD-like) keeps its top 8 bits, grey is replicated to 3 channels,

@@ -33,6 +33,7 @@ from .dataset import (
     CameraInfo,
     GtPose,
     ModelInfo,
+    is_grey,
     Target,
     save_depth_png,
     save_rgb,
@@ -198,7 +199,7 @@ def wrap_frame(
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
-    if grey and not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2])):
+    if grey and not is_grey(rgb):
         raise ValueError("grey=True but the image's three channels differ")
     H, W = rgb.shape[:2]
     depth = np.asarray(depth_mm, np.float64)

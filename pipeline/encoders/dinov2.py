@@ -62,6 +62,7 @@ import numpy as np
 import torch
 
 from pipeline.encoders.registry import VisualEncoder, WeightsNotFound, register_encoder, resolve_weights_dir, resolve_weights_path
+from pipeline.encoders.torch_device import resolve_device
 
 PATCH_SIZE = 14
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -273,23 +274,6 @@ def cpu_supports_bf16() -> bool:
     return False
 
 
-def resolve_device(device: str, who: str = "dinov2") -> str:
-    """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; ``"cpu"``,
-    ``"cuda"``, ``"cuda:i"`` as given, after checking that a CUDA device is visible
-    (``ValueError`` naming ``who`` and the device otherwise)."""
-    device = str(device)
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cpu":
-        return device
-    if re.fullmatch(r"cuda(:\d+)?", device) is None:
-        raise ValueError(f"{who}: device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}")
-    if not torch.cuda.is_available():
-        raise ValueError(f"{who}: device {device!r} was asked for, but no CUDA device is visible to torch "
-                         "(torch.cuda.is_available() is false); use device 'auto' or 'cpu'")
-    return device
-
-
 def bf16_supported(device: str) -> bool:
     """Whether ``device`` (``"cpu"`` or ``"cuda[:i]"``) runs bf16 in hardware."""
     if device.startswith("cuda"):
@@ -476,7 +460,7 @@ class Dinov2Encoder(VisualEncoder):
             raise ValueError(f"dinov2: batch_size must be >= 1, got {batch_size}")
         self.input_size = int(input_size)
         self.batch_size = int(batch_size)
-        self.device = resolve_device(device)
+        self.device = resolve_device(device, "dinov2")
         self.precision = resolve_precision(precision, self.device)
         self._fetched: torch.nn.Module | None = None  # a model just loaded from the hub
 

@@ -87,7 +87,6 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-from pipeline.encoders.dinov2 import resolve_device
 from pipeline.encoders.gedi_ops import (
     ball_query,
     ball_query_hits,
@@ -98,6 +97,7 @@ from pipeline.encoders.gedi_ops import (
     group_points,
 )
 from pipeline.encoders.registry import GeometricEncoder, WeightsNotFound, register_encoder, resolve_weights_path
+from pipeline.encoders.torch_device import resolve_device
 
 GEDI_DIM = 32
 DEFAULT_WEIGHTS = "gedi/chkpt.tar"  # relative to the weights folder

@@ -122,7 +122,7 @@ def load_rgb_and_mode(path: Path | str) -> tuple[np.ndarray, str | None]:
     gray``), and templates and SAR renders are made grey to look like it."""
     import cv2
 
-    from pipeline.bop.dataset import decoded_to_rgb
+    from pipeline.bop.dataset import decoded_to_rgb, is_grey
 
     im = _imread(Path(path), "RGB", cv2.IMREAD_UNCHANGED)
     try:
@@ -131,7 +131,7 @@ def load_rgb_and_mode(path: Path | str) -> tuple[np.ndarray, str | None]:
         raise EstimateError(str(e)) from None
     if im.ndim == 2 or im.shape[2] == 1:
         return rgb, "a single-channel image"
-    if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]):
+    if is_grey(rgb):
         return rgb, "its three channels are identical"
     return rgb, None
 

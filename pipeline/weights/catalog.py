@@ -18,7 +18,7 @@ from typing import Any, Iterable, Literal
 from pipeline import config as cfg
 from pipeline.config import EncoderManifest, ManifestError, WeightDownload
 from pipeline.store import file_digest
-from pipeline.weights.fetch import part_path, pinned_digest, read_sidecar, sidecar_path, target_path
+from pipeline.weights.fetch import judge_file, part_path, pinned_digest, read_sidecar, sidecar_path, target_path
 
 Source = Literal["official", "hf"]
 SOURCES: tuple[Source, ...] = ("official", "hf")
@@ -62,10 +62,10 @@ def manifests_with_downloads(manifest_dir: str | os.PathLike | None = None) -> l
     A manifest that does not validate raises its ``ManifestError`` (naming the file)."""
     manifest_dir = Path(manifest_dir) if manifest_dir is not None else manifest_dir_default()
     out = []
-    for path in sorted((manifest_dir / "encoders").glob("*.yaml"), key=lambda p: p.stem):
-        man = cfg.load_encoder_manifest(path.stem, manifest_dir)
+    for name in cfg.encoder_manifest_names(manifest_dir):
+        man = cfg.load_encoder_manifest(name, manifest_dir)
         if man.download:
-            out.append(Listed(path.stem, path, man))
+            out.append(Listed(name, manifest_dir / "encoders" / f"{name}.yaml", man))
     return out
 
 
@@ -144,14 +144,11 @@ def entry_status(download: WeightDownload, weights_dir: Path, manifest: str | os
         digests[key] = file_digest(final)
     actual = digests[key]
     row.update(bytes=st.st_size, sha256=actual)
-    recorded = read_sidecar(final)
-    pinned = pinned_digest(download, manifest)
-    if recorded is not None and recorded != actual:
-        row.update(status="mismatch", note=f"differs from {sidecar_path(final).name}: changed or corrupt")
-    elif pinned is not None and actual != pinned:
-        row.update(status="mismatch", note="differs from the manifest's sha256")
-    elif recorded is None:
-        row.update(status="present", note="no recorded digest yet (fetch records it)")
-    else:
-        row["status"] = "verified"
+    verdict = judge_file(actual, read_sidecar(final), pinned_digest(download, manifest))
+    row.update({
+        "changed": {"status": "mismatch", "note": f"differs from {sidecar_path(final).name}: changed or corrupt"},
+        "not-pinned": {"status": "mismatch", "note": "differs from the manifest's sha256"},
+        "unrecorded": {"status": "present", "note": "no recorded digest yet (fetch records it)"},
+        "verified": {"status": "verified"},
+    }[verdict])
     return row

@@ -224,6 +224,24 @@ class _Context:
         return f"manifest {self.manifest}" if self.manifest else "no manifest"
 
 
+FileVerdict = Literal["verified", "unrecorded", "changed", "not-pinned"]
+
+
+def judge_file(actual: str, recorded: str | None, pinned: str | None) -> FileVerdict:
+    """What a file under its final name is, from its digest ``actual``, the one recorded
+    beside it (None: no record) and the manifest's pinned one (None: not pinned):
+    ``changed`` (it differs from its record: changed or corrupt since it was fetched),
+    ``not-pinned`` (it differs from the pinned digest), ``unrecorded`` (no record yet,
+    e.g. placed by hand, and the pinned digest agrees if there is one) or ``verified``.
+    The one judgement of ``fetch`` (:func:`fetch_download`) and ``list``
+    (:func:`pipeline.weights.catalog.entry_status`)."""
+    if recorded is not None and recorded != actual:
+        return "changed"
+    if pinned is not None and actual != pinned:
+        return "not-pinned"
+    return "unrecorded" if recorded is None else "verified"
+
+
 def _existing(final: Path, pinned: str | None, manifest: str, log: Log) -> FetchResult | None:
     """The outcome for a file already under its final name, or None when there is none.
 
@@ -238,17 +256,18 @@ def _existing(final: Path, pinned: str | None, manifest: str, log: Log) -> Fetch
     actual = file_digest(final)
     recorded = read_sidecar(final)
     side = sidecar_path(final)
-    if recorded is not None and recorded != actual:
+    verdict = judge_file(actual, recorded, pinned)
+    if verdict == "changed":
         raise WeightsFetchError(
             f"{final}: its SHA-256 is {actual} but {side.name} recorded {recorded or '(an unreadable line)'} when it "
             f"was fetched: the file changed or is corrupt; delete {final} and {side} to fetch it again "
             f"(manifest {manifest})")
-    if pinned is not None and actual != pinned:
+    if verdict == "not-pinned":
         raise WeightsFetchError(
             f"{final}: its SHA-256 is {actual} but {manifest} pins {pinned}: it is not the published file, or it is "
             f"corrupt; delete it (and {side.name} if present) to fetch it again")
     size = final.stat().st_size
-    if recorded is None:
+    if verdict == "unrecorded":
         write_sidecar(final, actual)
         log(f"{final}: present without a recorded digest; recorded sha256 {actual}"
             + (" (matches the manifest)" if pinned else "") + ", skipped")
