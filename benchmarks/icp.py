@@ -17,6 +17,9 @@ pipeline does. Variants:
   candidate's chosen pose (:class:`pipeline.scene_side.FineIcp`, for objects without
   shape symmetries): 2000 of the candidate points against 20000 model surface samples,
   same schedule;
+- ``open3d-hypothesis-icp``, ``open3d-pipeline``: the same two with Open3D's
+  ``registration_icp`` (point-to-plane, its default convergence test, 30 iterations per
+  threshold), which the pipeline used before its own ICP (:mod:`pipeline.geometry.icp`);
 - ``dense-scene``: the same with every candidate point instead of M;
 - ``tukey``: the same with a Tukey robust kernel (k = the current correspondence distance / 2);
 - ``dense-model``: the model's own vertices with their vertex normals (Open3D's ICP "on
@@ -66,25 +69,36 @@ def icp_variants(model_mesh, diameter: float, seed: int):
     """name -> function(scene_all, scene_m, R0, t0) -> (R, t)."""
     import open3d as o3d
 
-    from pipeline.geometry.icp import refine_icp
+    from pipeline.geometry.icp import IcpModel, refine_icp
     from pipeline.geometry.sampling import sample_surface
 
     pts, nrm = sample_surface(model_mesh, 5000, seed=seed)
     pts20, nrm20 = sample_surface(model_mesh, 20000, seed=seed)
+    # Built once per object, as refine does (its k-d tree serves every ICP on the object).
+    model5k, model20k = IcpModel(pts, nrm), IcpModel(pts20, nrm20)
     verts = np.array(model_mesh.vertices, np.float64)
     vnrm = np.array(model_mesh.vertex_normals, np.float64)
 
     def hypothesis_icp(points_all, points_m, R0, t0):
-        r = refine_icp(pts, nrm, points_m, R0, t0, diameter)
+        r = refine_icp(model5k, None, points_m, R0, t0, diameter)
         return r.R, r.t
 
     def ours(points_all, points_m, R0, t0):
         from pipeline.scene_side import sample_candidate
 
-        r = refine_icp(pts, nrm, points_m, R0, t0, diameter)
+        r = refine_icp(model5k, None, points_m, R0, t0, diameter)
         fine = points_all[sample_candidate(len(points_all), 2000, 0)]
-        r = refine_icp(pts20, nrm20, fine, r.R, r.t, diameter)
+        r = refine_icp(model20k, None, fine, r.R, r.t, diameter)
         return r.R, r.t
+
+    def open3d_hypothesis_icp(points_all, points_m, R0, t0):
+        return _o3d(pts, nrm, points_m, R0, t0, kernel=False)
+
+    def open3d_pipeline(points_all, points_m, R0, t0):
+        from pipeline.scene_side import sample_candidate
+
+        R, t = _o3d(pts, nrm, points_m, R0, t0, kernel=False)
+        return _o3d(pts20, nrm20, points_all[sample_candidate(len(points_all), 2000, 0)], R, t, kernel=False)
 
     def dense_scene(points_all, points_m, R0, t0):
         r = refine_icp(pts, nrm, points_all, R0, t0, diameter)
@@ -151,7 +165,8 @@ def icp_variants(model_mesh, diameter: float, seed: int):
                 reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
         return invert(*matrix_to_rt(T))
 
-    return {"pipeline": ours, "hypothesis-icp": hypothesis_icp, "dense-scene": dense_scene, "tukey": tukey, "dense-model": dense_model,
+    return {"pipeline": ours, "hypothesis-icp": hypothesis_icp, "open3d-pipeline": open3d_pipeline,
+            "open3d-hypothesis-icp": open3d_hypothesis_icp, "dense-scene": dense_scene, "tukey": tukey, "dense-model": dense_model,
             "point-to-point": point_to_point, "gicp": gicp, "model-vertices": model_vertices,
             "samples-20k": dense_samples, "samples-20k-dense-scene": dense_both, "fine-2000": fine(2000),
             "fine-5000": fine(5000)}

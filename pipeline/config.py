@@ -145,6 +145,9 @@ class RefineParams(_Strict):
                                                           "than this fraction of the diameter are one instance")
     sar: bool = Field(True, description="symmetry-aware refinement of objects with geometric symmetries")
     sar_step_deg: float = Field(30.0, gt=0, le=180, description="sampling step of continuous symmetries for SAR")
+    sar_coarse_deg: float = Field(60.0, ge=0, le=180, description="SAR searches coarse to fine: first the variants "
+                                                                  "at least this far apart (deg), then those nearer "
+                                                                  "than that to the two best (0: every variant)")
     sar_min_gain: float = Field(0.005, ge=0, description="SAR leaves the ICP pose unless a variant's similarity "
                                                          "beats it by more than this")
     sar_skip_declared: bool = Field(True, description="SAR does not try variants that the dataset's models_info "

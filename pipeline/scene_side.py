@@ -580,26 +580,25 @@ class FineIcp:
 
     def __init__(self, images: SceneImages, params: RefineParams, objects: set[int]):
         self.images, self.params, self.objects = images, params, set(objects)
-        self._models: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._models: dict[int, Any] = {}  # obj_id -> IcpModel of the dense samples
 
     def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray,
                  diameter: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The fine pose (R (3, 3), t (3,) mm), or None when the object is not refined."""
-        from pipeline.geometry.icp import refine_icp
+        from pipeline.geometry.icp import IcpModel, refine_icp
         from pipeline.geometry.sampling import sample_surface
 
         if obj_id not in self.objects:
             return None
         if obj_id not in self._models:
-            self._models[obj_id] = sample_surface(self.images.mesh(obj_id), self.params.fine_icp_model_points,
-                                                  seed=obj_id)
+            self._models[obj_id] = IcpModel(*sample_surface(self.images.mesh(obj_id),
+                                                            self.params.fine_icp_model_points, seed=obj_id))
         _, mask = self.images.candidate(cand_id)
         pts, _ = candidate_points(self.images.depth(im_id), self.images.K(im_id), mask, diameter)
         if len(pts) < 3:
             return None
         pts = pts[sample_candidate(len(pts), self.params.fine_icp_points, seed=cand_id)]
-        points, normals = self._models[obj_id]
-        res = refine_icp(points, normals, pts, R, t, diameter, max_corr_dist_frac=self.params.max_corr_frac,
+        res = refine_icp(self._models[obj_id], None, pts, R, t, diameter, max_corr_dist_frac=self.params.max_corr_frac,
                          iterations=self.params.iterations, point_to_plane=self.params.point_to_plane)
         return res.R, res.t
 
@@ -655,13 +654,17 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     objects = sorted({int(o) for o in registered.obj_id})
     # Everything a candidate needs, so that a worker process can have it: the scene
     # points of the candidates, the models (loaded here, once per object).
+    from pipeline.geometry.icp import IcpModel
+
+    models = {o: model_of(o) for o in objects}
     work = _RefineWork({int(g.cand_id.iloc[0]): scene_points(int(g.cand_id.iloc[0])) for g in groups},
-                       {o: model_of(o) for o in objects}, {o: diameters[o] for o in objects}, params, key,
+                       {o: IcpModel(m["points"], m["normals"] if params.point_to_plane else None)
+                        for o, m in models.items()} if params.icp else {},
+                       {o: diameters[o] for o in objects}, params, key,
                        verify, fine, {o: turns[o] for o in objects if turns and o in turns})
     image_time: dict[int, float] = {}
     rows: list[dict[str, Any]] = []
-    with _icp_on_one_thread(mapper):
-        done = mapper.map(_refine_one, [g.to_dict("records") for g in groups], work, progress)
+    done = mapper.map(_refine_one, [g.to_dict("records") for g in groups], work, progress)
     for g, (mine, dt) in zip(groups, done):
         rows += mine
         im_id = int(g.im_id.iloc[0])
@@ -676,8 +679,7 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     if fine is not None:
         chosen = [cands.loc[i, ["cand_id", "im_id", "obj_id", "R", "t", "evidence", "verification"]].to_dict()
                   for i in cands.index]
-        with _icp_on_one_thread(mapper):
-            fined = mapper.map(_fine_one, chosen, work)
+        fined = mapper.map(_fine_one, chosen, work)
         for i, (update, dt) in zip(cands.index, fined):
             for k, v in update.items():
                 cands.at[i, k] = v
@@ -696,43 +698,16 @@ def hypothesis_rank(value: float, evidence: float, hyp: int) -> tuple:
     return (math.isnan(v), 0.0 if math.isnan(v) else -v, math.isnan(e), 0.0 if math.isnan(e) else -e, int(hyp))
 
 
-def _icp_on_one_thread(mapper: Mapper) -> Any:
-    """A context holding open3d at one thread while ``mapper`` runs ICPs on several
-    threads of this process: :func:`pipeline.geometry.icp.refine_icp` sets open3d's
-    process-wide thread count to 1 and restores it around each call, and two threads
-    doing so interleave (one restores the count while the other's ICP runs, whose sums
-    then vary from run to run: 1 of 84 hypotheses of a synthmini scene moved). Held
-    here, every call finds 1 and restores 1."""
-    from contextlib import nullcontext
-
-    if mapper.kind != "threads":
-        return nullcontext()
-    from pipeline.geometry.icp import _one_thread
-
-    return _one_thread()
-
-
-def _worker_icp_on_one_thread() -> None:
-    """The same for a cluster's worker process, whose threads run only these tasks:
-    open3d kept at one thread there for good (a no-op in this process's main thread)."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        import open3d as o3d
-
-        if o3d.utility.get_max_threads() != 1:
-            o3d.utility.set_max_threads(1)
-
-
 @dataclass(frozen=True)
 class _RefineWork:
     """What every candidate of a scene's refinement shares, and the work on one
     candidate (:func:`_refine_one`, :func:`_fine_one`): points (cand_id -> (k, 3) mm),
-    models (obj_id -> ``points``, ``normals`` (N, 3)), diameters (mm), parameters, the
+    models (obj_id -> :class:`pipeline.geometry.icp.IcpModel`, its k-d tree built once for
+    every ICP on it), diameters (mm), parameters, the
     ranking column, the verifier, the fine ICP and the turns (obj_id -> (n, 4, 4))."""
 
     points: Mapping[int, np.ndarray]
-    models: Mapping[int, Mapping[str, np.ndarray]]
+    models: Mapping[int, Any]
     diameters: Mapping[int, float]
     params: RefineParams
     key: str
@@ -749,10 +724,9 @@ class _RefineWork:
         params = self.params
         if not params.icp:
             return R, t, fitness, float("nan")
-        m = self.models[ident["obj_id"]]
         schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
             {"iterations": params.iterations}
-        res = refine_icp(m["points"], m["normals"], self.points[ident["cand_id"]], R, t,
+        res = refine_icp(self.models[ident["obj_id"]], None, self.points[ident["cand_id"]], R, t,
                          self.diameters[ident["obj_id"]], max_corr_dist_frac=params.max_corr_frac,
                          point_to_plane=params.point_to_plane, **schedule)
         return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
@@ -813,7 +787,6 @@ class _RefineWork:
 def _refine_one(work: _RefineWork, group: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], float]:
     """One candidate's hypotheses (register's rows ``group``) after ICP and verification,
     with the turns of its best; and the candidate's time (s)."""
-    _worker_icp_on_one_thread()
     mine, total = [], 0.0
     for c in group:
         t0 = time.perf_counter()
@@ -833,7 +806,6 @@ def _fine_one(work: _RefineWork, c: dict[str, Any]) -> tuple[dict[str, Any], flo
     """The fine ICP of a candidate's chosen pose ``c`` (cand_id, im_id, obj_id, R, t,
     evidence, verification): the columns to update (none when the fine pose is not
     kept) and its time (s, 0 for an object the fine ICP does not refine)."""
-    _worker_icp_on_one_thread()
     t0 = time.perf_counter()
     obj_id, im_id, cand_id = int(c["obj_id"]), int(c["im_id"]), int(c["cand_id"])
     diameter = work.diameters[obj_id]
@@ -930,12 +902,15 @@ def refine_by_symmetry(poses: pd.DataFrame, transforms: Mapping[int, np.ndarray]
                 renderer, obj_id, vis, rgb[im_id], images.K(im_id), bbox,
                 np.asarray(poses.at[i, "R"], float).reshape(3, 3), np.asarray(poses.at[i, "t"], float),
                 transforms[obj_id], margin=crop_margin, min_cover=params.sar_min_cover, min_gain=params.sar_min_gain,
-                centre=params.sar_centre, scene_mask=mask if params.sar_use_mask else None, image_mode=image_mode)
+                centre=params.sar_centre, scene_mask=mask if params.sar_use_mask else None, image_mode=image_mode,
+                coarse_deg=params.sar_coarse_deg)
             k = int(res.index)
             poses.at[i, "R"] = _flat(res.Rs[k], 9)
             poses.at[i, "t"] = _flat(res.ts[k], 3)
             poses.at[i, "sar_variant"] = k
             for v, (Rv, tv, s) in enumerate(zip(res.Rs, res.ts, res.similarities)):
+                if np.isnan(s):  # left out by the coarse-to-fine search
+                    continue
                 rows.append({"scene_id": scene_id, "im_id": im_id, "obj_id": obj_id, "cand_id": cand_id, "variant": v,
                              "R": _flat(Rv, 9), "t": _flat(tv, 3), "similarity": float(s), "chosen": v == k})
             image_time[im_id] = image_time.get(im_id, 0.0) + time.perf_counter() - t0

@@ -159,7 +159,7 @@ _SPECS = (
                 "each modality's own)",
         threads=1, mem_mb=1500, runtime_min=240),
     StageSpec(
-        "refine", 7, ("scene", "all"),
+        "refine", 8, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
                "all": ("refine", "scene_features", "register", "segment_prior")},
         writes={"scene": ("candidates.parquet", "hypotheses.parquet", "poses.parquet", "sar.parquet",

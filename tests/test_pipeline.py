@@ -239,7 +239,7 @@ def test_multi_instance_targets_get_distinct_hypotheses(tiny_run):
 def test_symmetries_and_sar_artifacts(tiny_run):
     """Symmetries are estimated per object; SAR runs only where the geometric symmetries
     go beyond the declared ones (the can: its label breaks its shape's symmetry), and
-    records every variant's similarity."""
+    records the similarity of every variant its coarse-to-fine search scored."""
     from pipeline.store import read_table
 
     work, _ = tiny_run
@@ -255,5 +255,9 @@ def test_symmetries_and_sar_artifacts(tiny_run):
     assert len(can) == 2 and (can.sar_variant >= 0).all()
     assert (poses[poses.obj_id != 2].sar_reason == "no symmetry beyond the declared ones").all()
     assert sorted(sar.obj_id.unique()) == [2]
-    assert sar.groupby("cand_id").variant.count().eq(24).all()  # 12 angles x (identity, flip)
+    # Of 12 angles x (identity, flip) = 24 variants: the 12 at least 60 deg apart, then
+    # those 30 deg either side of the two best.
+    counts = sar.groupby("cand_id").variant.count()
+    assert counts.between(13, 16).all(), counts.tolist()
+    assert sar.groupby("cand_id").variant.min().eq(0).all() and sar.variant.max() <= 23
     assert sar.groupby("cand_id").chosen.sum().eq(1).all()

@@ -105,15 +105,15 @@ MAIN_JOB_KEYS = {
     "segment_prior": "cb98a60a90478c1373a838b74f1b032f44df3b57",
     "scene_features": "1fb7016d520a9e4c243b2714fd6d0fd53bc3c6e0",
     "register": "94255dac2bdc93f8b69cd94ffa44e7c966436302",
-    "refine": "9eed35b53637dcd92e04395c7991397095926b0b",
-    "score": "8465052deabb85d6b835852a58bfebaf4b08c0c7",
+    "refine": "ce7d6010663c1119277b47600aa3f0f8b995f2cf",
+    "score": "181e84ccb08d3b3edfdfed8343fee74e1f057617",
 }
 
 
 def test_main_job_keys_are_pinned():
     plan = RunPlan(cfg.load_run({}))["synthmini"]
     assert {s: sp.key for s, sp in plan.stages.items()} == MAIN_JOB_KEYS
-    assert plan["refine"].signature == "icp+sar-byverification-9eed35b5"
+    assert plan["refine"].signature == "icp+sar-byverification-ce7d6010"
 
 
 def test_renamed_values_keep_their_keys():

@@ -25,11 +25,13 @@ from pipeline.geometry.transforms import (  # noqa: E402
 )
 from pipeline.refinement.sar import (  # noqa: E402
     cell_cover,
+    coarse_variants,
     crop_intrinsics,
     render_in_crop,
     sar_similarity,
     symmetry_aware_refinement,
     unique_symmetries,
+    variant_angles,
     variant_poses,
 )
 from pipeline.render.renderer import Light, Lighting, Renderer  # noqa: E402
@@ -257,6 +259,38 @@ def test_sar_recovers_the_can_label(renderer, colortex, scenes, start_deg):
     res = _check_sar(renderer, colortex, scenes[2], 2, CAN_SYMS, _sym(Z, start_deg), perturb_deg=2.0 if start_deg else 0.0)
     assert len(res.similarities) == 12
     assert res.changed == (start_deg != 0)
+
+
+def test_coarse_variants_of_a_sampled_axis_and_its_flip():
+    """A can's 12 turns about its axis and the same 12 flipped: the coarse pass keeps
+    every other turn of each (60 deg) or every third (90 deg); the 4 box variants are all
+    at least 180 deg apart and all kept."""
+    flip = _sym(X, 180)
+    syms = np.concatenate([CAN_SYMS, flip[None] @ CAN_SYMS])
+    angles = variant_angles(syms)
+    assert angles.shape == (24, 24) and np.allclose(np.diag(angles), 0.0, atol=1e-4)
+    assert coarse_variants(angles, 60.0) == [0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22]
+    assert coarse_variants(angles, 90.0) == [0, 3, 6, 9, 12, 15, 18, 21]
+    box = unique_symmetries(BOX_SYMS)
+    assert coarse_variants(variant_angles(box), 60.0) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("start_deg", [90, 150, 180])
+def test_coarse_to_fine_sar_finds_the_label_with_fewer_renders(renderer, colortex, scenes, start_deg):
+    """The coarse-to-fine search ends on the variant the exhaustive one chooses, with the
+    same similarity for every variant it scored, and at 60 deg scores at most 10 of the
+    12 (6 coarse, then 30 deg either side of the two best; at 90 deg two opposite leads
+    can need all 12)."""
+    rgb, R_gt, t_gt, bbox = scenes[2]
+    S = _sym(Z, start_deg)
+    R0, t0 = perturb_pose(R_gt @ S[:3, :3], t_gt, 2.0, 1.0, rng=7)
+    every = symmetry_aware_refinement(renderer, 2, colortex, rgb, K, bbox, R0, t0, CAN_SYMS)
+    for coarse in (60.0, 90.0):
+        fast = symmetry_aware_refinement(renderer, 2, colortex, rgb, K, bbox, R0, t0, CAN_SYMS, coarse_deg=coarse)
+        assert fast.index == every.index and rotation_angle_deg(fast.R, R_gt) < 2.5
+        scored = ~np.isnan(fast.similarities)
+        assert scored.sum() <= (10 if coarse == 60.0 else 12), (coarse, scored.sum())
+        np.testing.assert_allclose(fast.similarities[scored], every.similarities[scored], rtol=1e-6)
 
 
 @pytest.mark.parametrize("start", ["identity", "x", "y", "z"])

@@ -45,7 +45,9 @@ __all__ = [
     "sar_similarity",
     "symmetry_aware_refinement",
     "unique_symmetries",
+    "variant_angles",
     "variant_poses",
+    "coarse_variants",
 ]
 
 
@@ -172,6 +174,35 @@ def variant_poses(
     return R @ S[:, :3, :3], S[:, :3, 3] @ R.T + t
 
 
+COARSE_LEADS = 2
+"""The fine pass of SAR's coarse-to-fine search looks around this many of the best coarse
+variants. Replayed on the exhaustive similarities of 50 estimates with 4-24 variants
+(colortex; synthhard, synthmini, synthtiny and the BOP-layout sets), one lead chose
+another variant than the exhaustive search 6 times (often a second mode 150-180 degrees
+away), two leads never, with 32 % fewer renders (``benchmarks/results/sar_search.md``)."""
+
+
+def variant_angles(symmetries: np.ndarray) -> np.ndarray:
+    """Rotation angle (V, V) float64, degrees, between every two model-frame transforms
+    ``symmetries`` (V, 4, 4): the angle of ``S_a^T S_b``'s rotation."""
+    Rs = np.asarray(symmetries, dtype=np.float64)[:, :3, :3]
+    cos = (np.einsum("aji,bji->ab", Rs, Rs) - 1.0) / 2.0  # (trace(R_a^T R_b) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def coarse_variants(angles: np.ndarray, coarse_deg: float) -> list[int]:
+    """The first pass of SAR's coarse-to-fine search: variant 0 (the ICP pose), then, in
+    order, every variant at least ``coarse_deg`` (minus 1e-6) from all those already
+    taken. ``angles``: :func:`variant_angles`. For a continuous symmetry sampled every 30
+    degrees with a half-turn flip (24 variants) and 60 degrees, 12 are taken, and the
+    second pass adds those 30 degrees either side of the two best (at most 4)."""
+    taken = [0]
+    for v in range(1, len(angles)):
+        if angles[v, taken].min() >= coarse_deg - 1e-6:
+            taken.append(v)
+    return taken
+
+
 def cell_cover(masks: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
     """Fraction (B, h, w) float32 of each feature-map cell covered by ``masks``
     (B, S, S) bool: the area average over the cell's pixels (cells may span fractional
@@ -199,6 +230,7 @@ def sar_similarity(
     min_cover: float = 0.5,
     centre: bool = True,
     batch_size: int = 16,
+    scene_map: np.ndarray | None = None,
 ) -> np.ndarray:
     """Appearance agreement (V,) float64 of each render with the scene crop.
 
@@ -222,6 +254,9 @@ def sar_similarity(
     18/20 and 18/20 views raw under white light, 18/20 and 17/20 under warm light, and
     20/20 in all four settings centred, mostly with larger margins (the cereal box's 4
     variants: 20/20 either way).
+
+    scene_map: the scene crop's map (1, D, h, w) when already encoded (then
+    ``scene_crop`` is only checked), so that several calls on one crop encode it once.
     """
     S = encoder.input_size
     scene_crop = np.asarray(scene_crop)
@@ -234,7 +269,7 @@ def sar_similarity(
     V = len(renders)
     if V == 0:
         return np.zeros(0)
-    scene = encoder.encode(scene_crop[None]).astype(np.float32)  # (1, D, h, w)
+    scene = (encoder.encode(scene_crop[None]) if scene_map is None else scene_map).astype(np.float32)  # (1, D, h, w)
     scene_unit = _unit(scene)
     similarities = np.empty(V)
     for start in range(0, V, batch_size):
@@ -266,8 +301,8 @@ class SarResult:
     symmetries (V, 4, 4): the model-frame transform of each variant (identity first),
     ``T_variant = T_input @ symmetries[v]``.
     similarities (V,): each variant's mean cell-wise cosine similarity with the scene
-    (``-inf``: covered no cell; all NaN when there was a single variant and nothing
-    was rendered).
+    (``-inf``: covered no cell; NaN: not rendered, by the coarse-to-fine search or,
+    all of them, when there was a single variant).
     """
 
     index: int
@@ -307,6 +342,7 @@ def symmetry_aware_refinement(
     batch_size: int = 16,
     scene_mask: np.ndarray | None = None,
     image_mode: str = "rgb",
+    coarse_deg: float = 0.0,
 ) -> SarResult:
     """Choose among the symmetric variants of a refined pose the one that looks most
     like the scene.
@@ -334,6 +370,11 @@ def symmetry_aware_refinement(
 
     image_mode: "gray" for grey datasets (ITODD): the renders are turned grey like the
     scene image (:func:`pipeline.render.templates.match_image_mode`).
+
+    coarse_deg: > 0 searches coarse to fine (:func:`coarse_variants`): first the variants
+    at least this far apart, then those closer than it to the :data:`COARSE_LEADS` best
+    of them; the others are not rendered and keep a NaN similarity. 0 scores every
+    variant.
     """
     rgb_image = np.asarray(rgb_image)
     if rgb_image.ndim != 3 or rgb_image.shape[2] != 3 or rgb_image.dtype != np.uint8:
@@ -353,13 +394,27 @@ def symmetry_aware_refinement(
             raise ValueError(f"symmetry_aware_refinement: scene_mask {scene_mask.shape} differs from the image "
                              f"{rgb_image.shape[:2]}")
         inside &= crop_and_resize(scene_mask.astype(np.uint8) * 255, box, size) >= 128
-    renders = np.empty((V, size, size, 3), np.uint8)
-    masks = np.empty((V, size, size), bool)
-    for v in range(V):
-        renders[v], m = render_in_crop(renderer, key, Rs[v], ts[v], K, box, size, lighting)
-        masks[v] = m & inside
-    renders = match_image_mode(renders, image_mode)
-    similarities = sar_similarity(encoder, scene_crop, renders, masks, min_cover, centre, batch_size)
-    best = int(np.argmax(similarities))
+    scene_map = encoder.encode(scene_crop[None])
+    similarities = np.full(V, np.nan)
+
+    def score(which: Sequence[int]) -> None:
+        renders = np.empty((len(which), size, size, 3), np.uint8)
+        masks = np.empty((len(which), size, size), bool)
+        for i, v in enumerate(which):
+            renders[i], m = render_in_crop(renderer, key, Rs[v], ts[v], K, box, size, lighting)
+            masks[i] = m & inside
+        renders = match_image_mode(renders, image_mode)
+        similarities[list(which)] = sar_similarity(encoder, scene_crop, renders, masks, min_cover, centre,
+                                                   batch_size, scene_map=scene_map)
+
+    if coarse_deg > 0:
+        angles = variant_angles(Ss)
+        first = coarse_variants(angles, coarse_deg)
+        score(first)
+        leads = [first[i] for i in np.argsort(-similarities[first], kind="stable")[:COARSE_LEADS]]
+        score([v for v in range(V) if np.isnan(similarities[v]) and angles[leads, v].min() < coarse_deg])
+    else:
+        score(range(V))
+    best = int(np.argmax(np.where(np.isnan(similarities), -np.inf, similarities)))
     index = best if similarities[best] > similarities[0] + min_gain else 0
     return SarResult(index, Rs[index].copy(), ts[index].copy(), Rs, ts, Ss, similarities)

@@ -86,7 +86,7 @@ def draw_sar_figure(cases: Sequence[SarCase], out: Path, title: str = "") -> Pat
         lo, hi = float(np.nanmin(finite)), float(np.nanmax(finite))
         pad = max(0.01, 0.1 * (hi - lo))
         row[3].set_ylim(lo - pad, hi + pad)
-        row[3].set_xlabel("symmetric variant", fontsize=8)
+        row[3].set_xlabel("symmetric variant (no bar: not scored)", fontsize=8)
         row[3].set_ylabel("similarity", fontsize=8)
         row[3].tick_params(labelsize=7)
     for row in axes[len(cases):]:
@@ -122,8 +122,12 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     for (scene_id, im_id, cand_id), g in sar.groupby(["scene_id", "im_id", "cand_id"]):
         g = g.sort_values("variant")
         k = int(g[g.chosen].variant.iloc[0])
-        gain = float(g.similarity.iloc[k] - g.similarity.iloc[0])
-        groups.append((k > 0, gain, int(scene_id), int(im_id), int(cand_id), g))
+        # By variant number: the coarse-to-fine search leaves some variants unscored
+        # (no row), which stay NaN (no bar).
+        sims = np.full(int(g.variant.max()) + 1, np.nan)
+        sims[g.variant.to_numpy(int)] = g.similarity.to_numpy(float)
+        gain = float(sims[k] - sims[0])
+        groups.append((k > 0, gain, int(scene_id), int(im_id), int(cand_id), g, sims))
     groups.sort(key=lambda x: (not x[0], -x[1]))
     _, vis = build_encoders(plan.run)
     S = vis.input_size
@@ -132,7 +136,7 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     cases = []
     with Renderer(S, S, znear=1.0, zfar=100000.0) as r:
         r.add_mesh(obj_id, bop.load_model(obj_id))
-        for changed, gain, scene_id, im_id, cand_id, g in groups[:limit]:
+        for changed, gain, scene_id, im_id, cand_id, g, sims in groups[:limit]:
             boxes = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet")
             b = boxes[boxes.cand_id == cand_id].iloc[0]
             rgb = bop.load_rgb(scene_id, im_id)
@@ -145,6 +149,6 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
                 renders.append(render_in_crop(r, obj_id, np.asarray(row.R).reshape(3, 3), np.asarray(row.t), K, box, S))
             cases.append(SarCase(crop=crop_and_resize(rgb, box, S), icp_render=renders[0][0], icp_mask=renders[0][1],
                                  sar_render=renders[1][0], sar_mask=renders[1][1],
-                                 similarities=g.similarity.to_numpy(float), chosen=k,
+                                 similarities=sims, chosen=k,
                                  title=f"scene {scene_id} image {im_id} cand {cand_id}" + (" (changed)" if changed else "")))
     return cases
