@@ -8,10 +8,11 @@ or a dataset's folder in one) and keeps the estimates whose every variant was sc
 (runs with ``refine.sar_coarse_deg=0``, or made before the coarse-to-fine search); an
 estimate found again with the same similarities (another refine version) counts once.
 A variant's similarity does not depend on which other variants are scored, so the
-coarse-to-fine search (:func:`pipeline.refinement.sar.coarse_variants`, then the
-variants within ``coarse`` of the ``leads`` best) can be replayed exactly on those
-numbers, with SAR's rule (a variant replaces the ICP pose only when it beats it by
-more than ``min_gain``). Reported per setting: estimates, how many end with the same
+coarse-to-fine search (:func:`pipeline.refinement.sar.coarse_variants`, then
+:func:`~pipeline.refinement.sar.fine_variants`: those within ``coarse`` of the ``leads``
+best) can be replayed exactly on those numbers, with the functions SAR itself calls
+and SAR's rule (a variant replaces the ICP pose only when it beats it by more than
+``min_gain``). Reported per setting: estimates, how many end with the same
 variant as the exhaustive search, and the renders (= encoder images) needed.
 """
 
@@ -62,11 +63,10 @@ def exhaustive_estimates(caches: list[Path]) -> list[tuple[str, np.ndarray, np.n
 
 def replay(angles: np.ndarray, sim: np.ndarray, coarse: float, leads: int) -> np.ndarray:
     """The similarities the coarse-to-fine search would have (NaN where not scored)."""
-    from pipeline.refinement.sar import coarse_variants
+    from pipeline.refinement.sar import coarse_variants, fine_variants
 
     first = coarse_variants(angles, coarse)
-    top = [first[i] for i in np.argsort(-sim[first], kind="stable")[:leads]]
-    fine = [v for v in range(len(sim)) if v not in first and angles[top, v].min() < coarse]
+    fine = fine_variants(angles, first, sim, coarse, leads)
     out = np.full(len(sim), np.nan)
     out[first + fine] = sim[first + fine]
     return out

@@ -39,7 +39,7 @@ from typing import Sequence
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from pipeline.geometry.transforms import invert
+from pipeline.geometry.transforms import invert, rotation_about_axis, rotation_angle_deg
 
 WEAK_FRAC = 1e-3
 """Damping of the point-to-plane step, as a fraction of the normal matrix's largest
@@ -108,16 +108,6 @@ class IcpModel:
         self.tree = KDTree(self.points)
 
 
-def _rotation(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of the rotation vector ``w`` (3,) rad (Rodrigues)."""
-    theta = float(np.sqrt(w @ w))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = w / theta
-    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * Kx + (1.0 - np.cos(theta)) * (Kx @ Kx)
-
-
 def _plane_step(q: np.ndarray, m: np.ndarray, n: np.ndarray,
                 weak_frac: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """One Gauss-Newton step of point-to-plane alignment of the points ``q`` (k, 3) to the
@@ -143,7 +133,10 @@ def _plane_step(q: np.ndarray, m: np.ndarray, n: np.ndarray,
     if lam[-1] <= 0.0:
         return np.eye(3), c, np.zeros(3), 0.0
     x = V @ ((V.T @ -(J.T @ r)) / (lam + max(weak_frac * lam[-1], 1e-12 * lam[-1])))
-    return _rotation(x[:3] / L), c, x[3:], float(np.linalg.norm(x[:3]) + np.linalg.norm(x[3:]))
+    w = x[:3] / L  # rotation vector, rad
+    theta = float(np.linalg.norm(w))
+    Rw = rotation_about_axis(w, np.degrees(theta)) if theta > 0 else np.eye(3)
+    return Rw, c, x[3:], float(np.linalg.norm(x[:3]) + np.linalg.norm(x[3:]))
 
 
 def _point_step(q: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -154,8 +147,7 @@ def _point_step(q: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     Rw = Vt.T @ D @ U.T
     v = cm - c
     L = float(np.sqrt(((q - c) ** 2).sum(axis=1).mean()))
-    angle = float(np.arccos(np.clip((np.trace(Rw) - 1.0) / 2.0, -1.0, 1.0)))
-    return Rw, c, v, angle * L + float(np.linalg.norm(v))
+    return Rw, c, v, float(np.radians(rotation_angle_deg(np.eye(3), Rw))) * L + float(np.linalg.norm(v))
 
 
 def refine_icp(

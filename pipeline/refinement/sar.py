@@ -48,6 +48,7 @@ __all__ = [
     "variant_angles",
     "variant_poses",
     "coarse_variants",
+    "fine_variants",
 ]
 
 
@@ -201,6 +202,17 @@ def coarse_variants(angles: np.ndarray, coarse_deg: float) -> list[int]:
         if angles[v, taken].min() >= coarse_deg - 1e-6:
             taken.append(v)
     return taken
+
+
+def fine_variants(angles: np.ndarray, first: Sequence[int], similarities: np.ndarray, coarse_deg: float,
+                  leads: int = COARSE_LEADS) -> list[int]:
+    """The second pass of SAR's coarse-to-fine search: the variants not in ``first`` (the
+    coarse pass, :func:`coarse_variants`) nearer than ``coarse_deg`` to one of the
+    ``leads`` best of ``first`` by ``similarities`` (V,) (ties: the earlier first)."""
+    first = list(first)
+    top = [first[i] for i in np.argsort(-np.asarray(similarities)[first], kind="stable")[:leads]]
+    taken = set(first)
+    return [v for v in range(len(angles)) if v not in taken and angles[top, v].min() < coarse_deg]
 
 
 def cell_cover(masks: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
@@ -411,8 +423,7 @@ def symmetry_aware_refinement(
         angles = variant_angles(Ss)
         first = coarse_variants(angles, coarse_deg)
         score(first)
-        leads = [first[i] for i in np.argsort(-similarities[first], kind="stable")[:COARSE_LEADS]]
-        score([v for v in range(V) if np.isnan(similarities[v]) and angles[leads, v].min() < coarse_deg])
+        score(fine_variants(angles, first, similarities, coarse_deg))
     else:
         score(range(V))
     best = int(np.argmax(np.where(np.isnan(similarities), -np.inf, similarities)))
