@@ -54,7 +54,8 @@ largest per-estimate difference from ours.
   {root_parent} {targets} {out} {workers}`` are replaced (paths shell-quoted). Its AR
   is read from ``{out}/**/scores_bop19.json`` (the toolkit's) or ``{out}/scores.json``
   (ours). The toolkit scores only datasets it knows by name: link the bench dataset
-  under such a name and register its objects in the toolkit's ``dataset_params.py``.
+  under such a name and register its objects in the toolkit's ``dataset_params.py``
+  (``benchmarks/results/score_speed.md`` gives the command and the edits that were used).
 """
 
 from __future__ import annotations

@@ -132,3 +132,35 @@ def test_distance_crops_give_the_vsd_of_depth_crops() -> None:
         dists = [None if c is None else distance_crop(c, rays) for c in crops]
         got = vsd_distance_crops(test * rays, dists[0], dists[1], 15.0, 80.0, VSD_TAUS)
         np.testing.assert_array_equal(got, ref)
+
+
+def test_submitted_renders_are_collected_after_other_work_and_after_a_lost_context() -> None:
+    """submit + collect (the scorer computes MSSD and MSPD in between, while Mesa
+    rasterises) gives the pixels of render; when the EGL context is lost in between
+    (pyrender terminating the shared display does that), collect draws them again on a
+    new context instead of reading an empty atlas."""
+    rng = np.random.default_rng(3)
+    meshes = _meshes()
+    with DepthAtlasRenderer(1024, 512) as atlas:
+        for key, mesh in meshes.items():
+            atlas.add_mesh(key, mesh.vertices, mesh.faces)
+        requests = []
+        for key, R, t in _poses(rng, 12):
+            box = atlas.box(key, R, t, K, 640, 480)
+            if box is not None:
+                requests.append(DepthRequest(key, R, t, K, box))
+        assert len(requests) >= 8
+        reference = atlas.render(requests)
+        assert sum(int((c > 0).sum()) for c in reference) > 20000
+
+        pending = atlas.submit(requests)
+        busy = np.linalg.inv(rng.normal(size=(200, 200)) + 200 * np.eye(200))  # other work meanwhile
+        assert np.isfinite(busy).all()
+        for a, b in zip(atlas.collect(pending), reference):
+            np.testing.assert_array_equal(a, b)
+        assert atlas.collect(pending) is pending.out  # read once
+
+        pending = atlas.submit(requests)
+        atlas._context.destroy()
+        for a, b in zip(atlas.collect(pending), reference):
+            np.testing.assert_array_equal(a, b)

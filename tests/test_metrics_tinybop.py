@@ -163,6 +163,49 @@ def test_only_top_inst_count_estimates_are_scored(dataset: BopDataset) -> None:
     np.testing.assert_allclose(s.errors["mssd"], 100.0, atol=1e-9)
 
 
+def test_reading_ahead_gives_the_same_rows_and_names_a_bad_depth(tmp_path: Path, dataset: BopDataset) -> None:
+    """``ErrorCalculator.errors_of`` (a reader thread loads models and depth ahead) gives
+    every row of ``image_errors`` bit for bit, and a depth image that cannot be read
+    fails the job that needs it with the file's name, as without reading ahead."""
+    from pipeline.bop import BopFormatError
+    from pipeline.metrics.calc_errors import ErrorCalculator, ErrorParams
+    from pipeline.metrics.evaluate import _image_jobs
+
+    est = pd.concat([_estimates(v) for v in VARIANTS], ignore_index=True)
+    est["est_id"] = est.groupby(["scene_id", "im_id", "obj_id"], sort=False).cumcount()
+    jobs = _image_jobs(dataset, est)
+    assert len(jobs) == 3
+    rows = {}
+    for ahead in (False, True):
+        calc = ErrorCalculator(dataset, ErrorParams())
+        try:
+            if ahead:
+                rows[ahead] = [r for part in calc.errors_of(jobs, ahead=2) for r in part]
+            else:
+                rows[ahead] = [r for job in jobs for r in calc.image_errors(job)]
+        finally:
+            calc.close()
+    assert len(rows[True]) == len(rows[False]) == len(est)
+    for a, b in zip(rows[True], rows[False]):
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+
+    root = tmp_path / "icbin"
+    shutil.copytree(DATA / "icbin", root)
+    bad = root / "test" / "000001" / "depth" / "000002.png"
+    bad.write_bytes(b"not a png")
+    calc = ErrorCalculator(BopDataset(root), ErrorParams())
+    done = []
+    try:
+        with pytest.raises(BopFormatError, match="000002.png"):
+            for part in calc.errors_of(_image_jobs(BopDataset(root), est)):
+                done.append(part)
+    finally:
+        calc.close()
+    assert len(done) == 2  # images 0 and 1 were scored before image 2 failed
+
+
 def test_missing_depth_reports_no_vsd(tmp_path: Path) -> None:
     root = tmp_path / "icbin"
     shutil.copytree(DATA / "icbin", root, ignore=shutil.ignore_patterns("depth"))

@@ -19,15 +19,17 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 import cv2
 import numpy as np
-import trimesh
 
 from .errors import BopFormatError
 from .jsonio import brief, load_json, save_bop_json
 from .ply import load_mesh
+
+if TYPE_CHECKING:  # trimesh costs ~0.7 s to import; scoring and most commands never build a mesh
+    import trimesh
 
 _RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 _DEPTH_EXTS = (".png", ".tif", ".tiff")

@@ -16,11 +16,15 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from .errors import BopFormatError
 from .jsonio import brief
+
+if TYPE_CHECKING:  # imported where a mesh is built: ~0.7 s that reading a PLY does not need
+    import trimesh
 
 _PLY_TYPES: dict[str, str] = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -526,6 +530,8 @@ def load_mesh(path: Path | str) -> trimesh.Trimesh:
     ``read_ply`` fails, the PLY has no faces (a point cloud), or a texture image named
     in the header is missing or cannot be decoded.
     """
+    import trimesh
+
     path = Path(path)
     ply = read_ply(path)
     if len(ply.faces) == 0:  # a point cloud: nothing to render or to sample a surface on

@@ -13,7 +13,6 @@ import math
 from typing import Any, Iterable, Mapping
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 #: The BOP19 evaluation's ``max_sym_disc_step``.
 DEFAULT_MAX_SYM_DISC_STEP = 0.01
@@ -35,6 +34,10 @@ def _continuous_rotations(
     # diameter away) moves at most step * diameter between consecutive samples.
     n = int(math.ceil(math.pi / max_sym_disc_step))
     angles = np.arange(n) * (2.0 * math.pi / n)
+    # Imported here: scipy.spatial costs ~0.4 s at start-up, and most objects have no
+    # continuous symmetry.
+    from scipy.spatial.transform import Rotation
+
     Rs = Rotation.from_rotvec(angles[:, None] * (axis / norm)[None, :]).as_matrix()
     offset = np.asarray(offset, dtype=np.float64).reshape(3)
     ts = offset[None, :] - Rs @ offset

@@ -349,8 +349,8 @@ def _compute_errors(
         elif n_workers <= 1 or len(jobs) <= 1:
             calc = ErrorCalculator(dataset, params)
             try:
-                for job in jobs:
-                    rows.extend(calc.image_errors(job))
+                for part in calc.errors_of(jobs):
+                    rows.extend(part)
                     if bar is not None:
                         bar.advance(task)
             finally:
@@ -664,7 +664,8 @@ def _timing_summary(parts: dict[str, float], prepare: float, match: float, error
     """Seconds per part of ``evaluate`` (rounded to ms).
 
     prepare (main process: checking and selecting the estimates, reading the GT
-    annotations); load (depth images, models and their symmetries), vsd_render,
+    annotations); load (depth images, models and their symmetries, or the wait for the
+    reader thread that loads them ahead), vsd_render (drawing and collecting the renders),
     vsd_compare, mssd, mspd: summed over the worker processes, so with several workers
     their sum exceeds errors_wall (the wall time of the error computation, including
     starting the workers); match (errors table, greedy matching, recalls, breakdowns);
