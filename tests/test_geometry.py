@@ -49,6 +49,21 @@ def test_compose_invert_round_trip():
     np.testing.assert_allclose(np.linalg.inv(T), rt_to_matrix(Ri, ti), atol=1e-12)
 
 
+def test_rotation_about_axis_known_matrices():
+    # A quarter turn about z takes x to y; about a scaled axis the same as about the unit one.
+    np.testing.assert_allclose(rotation_about_axis([0, 0, 5], 90.0), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    np.testing.assert_allclose(rotation_about_axis([1, 1, 1], 120.0) @ [1.0, 0, 0], [0, 1, 0], atol=1e-15)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        axis, angle = rng.normal(size=3), float(rng.uniform(-360, 360))
+        R = rotation_about_axis(axis, angle)
+        np.testing.assert_allclose(R @ axis, axis, atol=1e-12)  # the axis stays put
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
+        assert rotation_angle_deg(np.eye(3), R) == pytest.approx(abs((angle + 180) % 360 - 180), abs=1e-9)
+    with pytest.raises(ValueError, match="non-zero"):
+        rotation_about_axis([0, 0, 0], 10.0)
+
+
 def test_rotation_angle_known_values():
     assert rotation_angle_deg(np.eye(3), rotation_about_axis([0, 0, 1], 30.0)) == pytest.approx(30.0)
     assert rotation_angle_deg(np.eye(3), rotation_about_axis([1, 1, 0], 180.0)) == pytest.approx(180.0)

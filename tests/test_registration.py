@@ -264,6 +264,22 @@ def test_fit_triangles_matches_kabsch_on_noisy_and_mirrored_triples():
     assert not fit_triangles(line, line)[3][0]
 
 
+def test_edge_lengths_of_sampled_triangles_are_exact():
+    import math
+
+    from pipeline.registration.ransac import _edge_lengths
+
+    # Integer coordinates: every squared length is an exact integer, so the batched
+    # lengths must equal the correctly rounded ones to the bit, edge by edge.
+    rng = np.random.default_rng(8)
+    pts = rng.integers(-300, 300, size=(40, 3)).astype(np.float64)
+    idx = rng.integers(0, 40, size=(500, 3))
+    lengths = _edge_lengths(np.ascontiguousarray(pts.T), np.ascontiguousarray(idx.T))
+    expected = np.array([[math.dist(pts[i], pts[j]) for i, j in ((a, b), (b, c), (c, a))] for a, b, c in idx]).T
+    assert lengths.shape == (3, 500)
+    np.testing.assert_array_equal(lengths, expected)
+
+
 def test_squared_residuals_expansion_matches_direct():
     from pipeline.registration.ransac import _score_terms, _squared_residuals
 
