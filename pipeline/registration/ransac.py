@@ -336,7 +336,8 @@ def _ransac_numpy(
         if not ok.any():
             continue
         sample = np.flatnonzero(ok)
-        R, t, res, fit_ok = fit_triangles(src[idx[ok]], dst[idx[ok]])
+        triples = idx[sample]
+        R, t, res, fit_ok = fit_triangles(src[triples], dst[triples])
         ok = fit_ok & (res < thr)
         if not ok.any():
             continue
