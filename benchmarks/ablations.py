@@ -28,7 +28,7 @@ import os
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -48,6 +48,7 @@ class PairResult:
     scene_s_per_target: float
     n_targets: int
     wall_s: float
+    peak_rss_mb: dict[str, float] = field(default_factory=dict)  # stage -> the largest job's peak RSS (MB)
 
 
 def run_pair(dataset: str, geometric: str, visual: str, *, cores: int = 2, weights_dir: str | None = None,
@@ -95,6 +96,10 @@ def run_config(config: dict[str, str], label: str, *, cores: int = 2, cache: Pat
     def job_seconds(stage: str) -> float:
         return sum(read_manifest(m)["wall_time_s"] for m in plan[stage].dir.glob("*/_manifest.json"))
 
+    def peak_rss(stage: str) -> float:
+        return max((float(read_manifest(m).get("peak_rss_mb") or 0.0) for m in plan[stage].dir.glob("*/_manifest.json")),
+                   default=0.0)
+
     scores = json.loads((plan["score"].item_dir("all") / "scores.json").read_text())
     n_targets = int(scores["summary"]["n_targets"])
     return PairResult(
@@ -105,6 +110,7 @@ def run_config(config: dict[str, str], label: str, *, cores: int = 2, cache: Pat
         scene_s_per_target=sum(job_seconds(s) for s in SCENE_SIDE) / max(1, n_targets),
         n_targets=n_targets,
         wall_s=wall,
+        peak_rss_mb={s: peak_rss(s) for s in ("model_features", *SCENE_SIDE)},
     )
 
 

@@ -143,16 +143,21 @@ def precision_check(repeat: int) -> str:
 
 
 def pipeline_pairs(pairs: list[str]) -> str:
+    """The table of ``--pipeline``: per pair, onboarding s/object, scene side s/target,
+    the run's wall time, and the largest job's peak RSS on the model side
+    (model_features) and on the scene side (scene_features, register, refine)."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from ablations import run_pair
+    from ablations import SCENE_SIDE, run_pair
 
     lines = ["# Whole-pipeline cost per encoder pair", "",
              f"`benchmarks/encoders.py --pipeline --pairs {','.join(pairs)}`: fresh `bop_all` runs on `synthtiny` "
-             "(3 objects, 2 images, 7 targets, 10 candidate masks) on 2 cores, random weights "
+             "(3 objects, 2 images, 7 targets, 10 candidate masks) on 2 cores, random full-size weights "
              "(the cost of real ones; AR not meaningful). Onboarding: model_features job time per object "
              "(5000 points, 42 templates); scene side: scene_features + register + refine job time per target "
-             "(3 candidates of 1000 points per target at most).", "",
-             "| geometric + visual | onboarding s/object | scene-side s/target | run wall time (s) |", "|---|---|---|---|"]
+             "(3 candidates of 1000 points per target at most). Peak RSS: the largest job's, from the "
+             "artifacts' `_manifest.json` (`peak_rss_mb`).", "",
+             "| geometric + visual | onboarding s/object | scene-side s/target | run wall time (s) "
+             "| peak RSS model side (GB) | peak RSS scene side (GB) |", "|---|---|---|---|---|---|"]
     from pipeline.config import load_encoder_manifest
 
     # the DINOv2 sizes the pairs use (dinov2-vitl14 -> vitl14)
@@ -163,8 +168,12 @@ def pipeline_pairs(pairs: list[str]) -> str:
         for pair in pairs:
             geo, vis = pair.split("+")
             r = run_pair("synthtiny", geo, vis, weights_dir=str(wdir), cache=Path(tmp) / "cache")
-            print(f"{pair}: {r.onboarding_s_per_object:.1f} s/object, {r.scene_s_per_target:.2f} s/target", flush=True)
-            lines.append(f"| {pair} | {r.onboarding_s_per_object:.1f} | {r.scene_s_per_target:.2f} | {r.wall_s:.0f} |")
+            model_gb = r.peak_rss_mb.get("model_features", 0.0) / 1024
+            scene_gb = max(r.peak_rss_mb.get(s, 0.0) for s in SCENE_SIDE) / 1024
+            print(f"{pair}: {r.onboarding_s_per_object:.1f} s/object, {r.scene_s_per_target:.2f} s/target, "
+                  f"peak RSS {model_gb:.1f} / {scene_gb:.1f} GB", flush=True)
+            lines.append(f"| {pair} | {r.onboarding_s_per_object:.1f} | {r.scene_s_per_target:.2f} | {r.wall_s:.0f} "
+                         f"| {model_gb:.1f} | {scene_gb:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -176,10 +185,12 @@ def main() -> None:
     ap.add_argument("--precision", action="store_true", help="bf16 vs fp32 check instead of the cost table")
     ap.add_argument("--pipeline", action="store_true", help="whole-pipeline cost per encoder pair instead")
     ap.add_argument("--pairs", default="fpfh+colortex,fpfh+dinov2-vits14,gedi+dinov2-vits14")
+    ap.add_argument("--out", type=Path, default=None, help="where --pipeline/--precision write their table "
+                    "(default benchmarks/results/pipeline_pairs.md or precision.md)")
     args = ap.parse_args()
     if args.precision or args.pipeline:
         text = precision_check(args.repeat) if args.precision else pipeline_pairs(args.pairs.split(","))
-        out = ROOT / "benchmarks" / "results" / ("precision.md" if args.precision else "pipeline_pairs.md")
+        out = args.out or ROOT / "benchmarks" / "results" / ("precision.md" if args.precision else "pipeline_pairs.md")
         out.write_text(text)
         print(text)
         return

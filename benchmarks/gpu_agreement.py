@@ -46,37 +46,48 @@ def gedi_weights(path: Path, seed: int = 0) -> Path:
     return save_random_checkpoint(path, seed=seed)
 
 
-def dinov2_official_weights(path: Path, model: str = "vits14", seed: int = 0) -> Path:
+def dinov2_official_weights(path: Path, model: str = "vits14", seed: int = 0, device: str = "cpu") -> Path:
     """A random state dict under the official facebookresearch/dinov2 parameter names
-    and shapes of ``model`` (no SwiGLU, no registers). The encoder loads it strictly,
-    so a wrong name or shape fails there."""
-    from pipeline.encoders.dinov2 import MODEL_CONFIGS, PATCH_SIZE, parse_model_name
+    and shapes of ``model`` (any size: the SwiGLU feed-forward of ViT-g, the register
+    tokens of the ``_reg`` variants), drawn on ``device`` (ViT-g/14 has 1.1 B
+    parameters) and saved from the CPU. The encoder loads it strictly, so a wrong name
+    or shape fails there."""
+    from pipeline.encoders.dinov2 import MODEL_CONFIGS, NUM_REGISTER_TOKENS, PATCH_SIZE, parse_model_name
 
     arch, reg = parse_model_name(model)
     cfg = MODEL_CONFIGS[arch]
-    if reg or cfg["use_swiglu_ffn"]:
-        raise ValueError(f"dinov2_official_weights: {model} is not a plain ViT (registers or SwiGLU)")
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator(device=device).manual_seed(seed)
     D, grid = cfg["hidden_size"], cfg["image_size"] // PATCH_SIZE
+    # SwiGLU hidden width as the official SwiGLUFFNFused rounds it
+    hidden = (int(4 * D * 2 / 3) + 7) // 8 * 8 if cfg["use_swiglu_ffn"] else 4 * D
 
     def normal(*shape: int, std: float = 0.02) -> torch.Tensor:
-        return torch.randn(*shape, generator=g) * std
+        return (torch.randn(*shape, generator=g, device=device) * std).cpu()
+
+    def uniform(n: int) -> torch.Tensor:
+        return (0.1 + torch.rand(n, generator=g, device=device)).cpu()
 
     sd = {"cls_token": normal(1, 1, D), "pos_embed": normal(1, 1 + grid * grid, D), "mask_token": torch.zeros(1, D),
           "patch_embed.proj.weight": normal(D, 3, PATCH_SIZE, PATCH_SIZE), "patch_embed.proj.bias": normal(D),
           "norm.weight": 1 + normal(D, std=0.1), "norm.bias": normal(D)}
+    if reg:
+        sd["register_tokens"] = normal(1, NUM_REGISTER_TOKENS, D)
     for i in range(cfg["num_hidden_layers"]):
         b = f"blocks.{i}."
         sd.update({
             b + "norm1.weight": 1 + normal(D, std=0.1), b + "norm1.bias": normal(D),
             b + "attn.qkv.weight": normal(3 * D, D), b + "attn.qkv.bias": normal(3 * D),
             b + "attn.proj.weight": normal(D, D), b + "attn.proj.bias": normal(D),
-            b + "ls1.gamma": 0.1 + torch.rand(D, generator=g),
+            b + "ls1.gamma": uniform(D),
             b + "norm2.weight": 1 + normal(D, std=0.1), b + "norm2.bias": normal(D),
-            b + "mlp.fc1.weight": normal(4 * D, D), b + "mlp.fc1.bias": normal(4 * D),
-            b + "mlp.fc2.weight": normal(D, 4 * D), b + "mlp.fc2.bias": normal(D),
-            b + "ls2.gamma": 0.1 + torch.rand(D, generator=g),
+            b + "ls2.gamma": uniform(D),
         })
+        if cfg["use_swiglu_ffn"]:
+            sd.update({b + "mlp.w12.weight": normal(2 * hidden, D), b + "mlp.w12.bias": normal(2 * hidden),
+                       b + "mlp.w3.weight": normal(D, hidden), b + "mlp.w3.bias": normal(D)})
+        else:
+            sd.update({b + "mlp.fc1.weight": normal(hidden, D), b + "mlp.fc1.bias": normal(hidden),
+                       b + "mlp.fc2.weight": normal(D, hidden), b + "mlp.fc2.bias": normal(D)})
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save(sd, path)
     return path

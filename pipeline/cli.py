@@ -80,11 +80,11 @@ def encoders(
 ) -> None:
     """List the encoder manifests: kind, dimension, version, the weights each needs
     (found or not, and the exact path looked in), and which are the paper's (GeDi +
-    DINOv2 ViT-L/14) and which weight-free stand-ins for them."""
+    DINOv2 ViT-g/14) and which weight-free stand-ins for them."""
     from pipeline.config import ManifestError, encoder_manifest_names, load_encoder_manifest
     from pipeline.encoders.registry import (EncoderSpec, WeightsNotFound, build_encoder, known_encoders, needs_weights,
                                             resolve_weights_dir)
-    from pipeline.stand_in import FETCH, paper_configuration, paper_line
+    from pipeline.stand_in import paper_configuration, paper_fetch, paper_line
 
     wdir = resolve_weights_dir(weights_dir)
     rows = []
@@ -108,7 +108,7 @@ def encoders(
     paper_text = paper_line()
     if as_json:
         print(json.dumps({"weights_dir": str(wdir), "manifests": rows, "registered_without_manifest": unused,
-                          "paper_configuration": {**paper, "fetch": f"{FETCH} {' '.join(paper.values())}",
+                          "paper_configuration": {**paper, "fetch": paper_fetch(),
                                                   "note": paper_text} if paper else None}, indent=2))
         return
     table = Table("manifest", "encoder", "kind", "role", "dim", "version", "signature", title="encoders")

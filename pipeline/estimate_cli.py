@@ -356,7 +356,7 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         geometric: Optional[str] = typer.Option(None, "--geometric", help="geometric encoder: a manifest of "
                                                 "manifests/encoders/ (`freeze encoders` lists them), e.g. gedi, the "
                                                 "paper's; the same as --config geometric=NAME (default: the run's, fpfh)"),
-        visual: Optional[str] = typer.Option(None, "--visual", help="visual encoder manifest, e.g. dinov2-vitl14, "
+        visual: Optional[str] = typer.Option(None, "--visual", help="visual encoder manifest, e.g. dinov2-vitg14, "
                                              "the paper's; the same as --config visual=NAME (default: the run's, "
                                              "colortex)"),
         device: Optional[Device] = typer.Option(None, "--device", case_sensitive=False, help="where torch runs "

@@ -1,7 +1,7 @@
 """Which encoders of a run stand in for the paper's, said in one sentence.
 
 The default encoders (``fpfh``, ``colortex``) need no weights: they stand in for the
-paper's GeDi + DINOv2 ViT-L/14. The encoder manifests say so (``stand_in: true``; the
+paper's GeDi + DINOv2 ViT-g/14. The encoder manifests say so (``stand_in: true``; the
 paper's own carry ``paper: true``), and this module turns those flags into the one line
 that a run prints at its start (the Snakefile's ``onstart``, ``freeze run``, ``freeze
 estimate``), that the HTML report shows and that ``pose.json`` records. The names come
@@ -41,10 +41,14 @@ def _manifest(name: str, kind: str, manifest_dir: Path) -> cfg.EncoderManifest |
 
 
 def display_name(man: cfg.EncoderManifest) -> str:
-    """``GeDi``, ``DINOv2 ViT-L/14``: the family, and the ViT size when the manifest names one."""
+    """``GeDi``, ``DINOv2 ViT-g/14``: the family, and the ViT size when the manifest names
+    one, spelled as DINOv2 spells it (ViT-S, -B, -L, and a lower-case g for giant)."""
     family = _FAMILY.get(man.encoder, man.encoder)
     m = re.fullmatch(r"vit([a-z])(\d+)", str(man.params.get("model") or ""))
-    return f"{family} ViT-{m.group(1).upper()}/{m.group(2)}" if m else family
+    if not m:
+        return family
+    size = m.group(1) if m.group(1) == "g" else m.group(1).upper()
+    return f"{family} ViT-{size}/{m.group(2)}"
 
 
 def paper_configuration(manifest_dir: Path = cfg.MANIFEST_DIR) -> dict[str, tuple[str, str]]:
@@ -61,6 +65,13 @@ def paper_configuration(manifest_dir: Path = cfg.MANIFEST_DIR) -> dict[str, tupl
     return {k: out[k] for k in KINDS if k in out}
 
 
+def paper_fetch(manifest_dir: Path = cfg.MANIFEST_DIR) -> str | None:
+    """``freeze weights fetch gedi dinov2-vitg14``: the command that fetches the paper's
+    encoders' weights; None when no manifest is marked ``paper``."""
+    paper = paper_configuration(manifest_dir)
+    return f"{FETCH} {' '.join(paper[k][0] for k in KINDS if k in paper)}" if paper else None
+
+
 def switch_text(names: dict[str, str], form: Form = "config") -> str:
     """The options that select the encoders ``names`` (kind -> manifest name)."""
     order = [k for k in KINDS if k in names]
@@ -72,7 +83,7 @@ def switch_text(names: dict[str, str], form: Form = "config") -> str:
 
 
 def paper_line(form: Form = "config", manifest_dir: Path = cfg.MANIFEST_DIR) -> str | None:
-    """``the paper's configuration is gedi + dinov2-vitl14 (GeDi + DINOv2 ViT-L/14): ...``
+    """``the paper's configuration is gedi + dinov2-vitg14 (GeDi + DINOv2 ViT-g/14): ...``
     with the fetch command and the options; None when no manifest is marked ``paper``."""
     paper = paper_configuration(manifest_dir)
     if not paper:
@@ -113,9 +124,9 @@ def stand_in_notice(geometric: str, visual: str, form: Form = "config",
                     manifest_dir: Path = cfg.MANIFEST_DIR) -> str | None:
     """The one line a run prints at its start when its geometric or visual encoder is a
     stand-in (``stand_in: true``) for the paper's, e.g. ``note: fpfh + colortex are
-    weight-free stand-ins for the paper's GeDi + DINOv2 ViT-L/14; fetch those with
-    `freeze weights fetch gedi dinov2-vitl14` and run with --config geometric=gedi
-    visual=dinov2-vitl14``. None when neither is a stand-in (nothing is said then)."""
+    weight-free stand-ins for the paper's GeDi + DINOv2 ViT-g/14; fetch those with
+    `freeze weights fetch gedi dinov2-vitg14` and run with --config geometric=gedi
+    visual=dinov2-vitg14``. None when neither is a stand-in (nothing is said then)."""
     clause = _stand_in_clause(geometric, visual, form, manifest_dir)
     return None if clause is None else f"note: {clause}"
 
@@ -124,7 +135,7 @@ def encoders_sentence(geometric: str, visual: str, form: Form = "config",
                       manifest_dir: Path = cfg.MANIFEST_DIR) -> str:
     """Which encoders ran, in one sentence (``pose.json``'s ``note``): ``fpfh + colortex:
     weight-free stand-ins for ...`` (the notice of :func:`stand_in_notice`), ``gedi +
-    dinov2-vitl14: the paper's configuration``, or the names and the paper's
+    dinov2-vitg14: the paper's configuration``, or the names and the paper's
     configuration for any other pair."""
     used = f"{geometric} + {visual}"
     clause = _stand_in_clause(geometric, visual, form, manifest_dir, subject=False)

@@ -37,6 +37,7 @@ def list_weights(
     present, verified, mismatch), size and URL. Present files are hashed to verify them
     (about 1 s per GB)."""
     from pipeline.encoders.registry import resolve_weights_dir
+    from pipeline.stand_in import paper_fetch
     from pipeline.weights import entry_status, human_size, manifests_with_downloads
 
     wdir = resolve_weights_dir(weights_dir)
@@ -64,8 +65,10 @@ def list_weights(
     for r in rows:
         if r["status"] in ("mismatch", "partial"):
             _console().print(f"{r['manifest']}: {r['path']}: {r['note']}", style=colour[r["status"]], markup=False)
+    paper = paper_fetch()
     _console().print(f"weights folder: {wdir} (--weights-dir, $FREEZE_WEIGHTS, or <project>/weights); "
-                     "fetch with `freeze weights fetch NAME` (--source hf for the Hugging Face copies)", markup=False)
+                     "fetch with `freeze weights fetch NAME` (--source hf for the Hugging Face copies)"
+                     + (f"; the paper's configuration: `{paper}`" if paper else ""), markup=False)
 
 
 @weights_app.command("fetch")

@@ -93,21 +93,26 @@ def test_hf_dir_loads_offline_and_gives_patch_grid(tmp_path, tiny_arch, register
     net.save_pretrained(tmp_path / "hf")
     model = tiny_arch + ("_reg" if registers else "")
     enc = build_encoder(EncoderSpec(name="dinov2", params={
-        "model": model, "weights": str(tmp_path / "hf"), "input_size": 42, "precision": "fp32",
+        "model": model, "weights": str(tmp_path / "hf"), "input_size": 56, "precision": "fp32",
         "device": "cpu", "batch_size": 2}))
     assert enc.kind == "visual" and enc.dim == 32
-    imgs = _images(3, 42)
+    imgs = _images(3, 56)
     out = enc.encode(imgs)
-    assert out.shape == (3, 32, 3, 3) and out.dtype == np.float32
+    assert out.shape == (3, 32, 4, 4) and out.dtype == np.float32
     # same as running the model by hand: ImageNet normalisation, patch tokens after the
-    # CLS (and register) tokens, reshaped row-major into the grid
+    # CLS (and register) tokens, reshaped row-major into the grid. At the trained grid
+    # (56 px here) no position embedding is resized, so transformers' own embeddings
+    # agree with the official ones the encoder uses (other sizes: test_dinov2_official.py)
     x = torch.from_numpy(imgs).permute(0, 3, 1, 2).float() / 255.0
     x = (x - torch.tensor(d2.IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(d2.IMAGENET_STD).view(1, 3, 1, 1)
     with torch.no_grad():
         tok = net(pixel_values=x).last_hidden_state[:, 1 + (4 if registers else 0):]
-    ref = tok.reshape(3, 3, 3, 32).permute(0, 3, 1, 2).numpy()
+    ref = tok.reshape(3, 4, 4, 32).permute(0, 3, 1, 2).numpy()
     np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-5)
-    assert enc.signature() == f"dinov2-vitt14{'reg' if registers else ''}-s42-fp32"
+    assert enc.signature() == f"dinov2-vitt14{'reg' if registers else ''}-s56-fp32"
+    # a 42 px crop resizes the 4 x 4 grid to 3 x 3
+    enc42 = d2.Dinov2Encoder(model=model, weights=str(tmp_path / "hf"), input_size=42, precision="fp32", device="cpu")
+    assert enc42.encode(_images(1, 42)).shape == (1, 32, 3, 3)
 
 
 @pytest.mark.parametrize("registers,swiglu", [(False, False), (True, False), (False, True)])

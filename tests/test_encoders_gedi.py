@@ -32,7 +32,7 @@ def _fps_ref(xyz: np.ndarray, m: int) -> list[int]:
         best, besti = np.float32(-1), 0
         for k in range(n):
             x2, y2, z2 = xyz[k]
-            if x2 * x2 + y2 * y2 + z2 * z2 <= np.float32(1e-3):
+            if float(x2 * x2 + y2 * y2 + z2 * z2) <= 1e-3:  # float mag against the double 1e-3
                 continue
             d = (x2 - x1) * (x2 - x1) + (y2 - y1) * (y2 - y1) + (z2 - z1) * (z2 - z1)
             d2 = min(d, temp[k])
@@ -46,7 +46,7 @@ def _fps_ref(xyz: np.ndarray, m: int) -> list[int]:
 
 def _ball_ref(radius: float, nsample: int, xyz: np.ndarray, query: np.ndarray) -> np.ndarray:
     xyz = xyz.astype(np.float32)
-    r2 = np.float32(radius) ** 2
+    r2 = np.float32(radius) * np.float32(radius)  # the kernel's float radius * radius
     out = np.zeros((len(query), nsample), dtype=np.int64)
     for j, (x1, y1, z1) in enumerate(query.astype(np.float32)):
         cnt = 0

@@ -499,7 +499,7 @@ def test_grey_frame_gets_grey_templates_and_pose_json_names_its_encoders(case, t
     colour = _run(case, mask=case["mask"])
     assert colour.record["inputs"]["image_mode"] == "rgb" and colour.record["encoders"]["visual"] == "colortex"
     assert colour.record["note"].startswith("fpfh + colortex: weight-free stand-ins for the paper's GeDi + DINOv2 "
-                                            "ViT-L/14; fetch those with `freeze weights fetch gedi dinov2-vitl14`")
+                                            "ViT-g/14; fetch those with `freeze weights fetch gedi dinov2-vitg14`")
     rgb = load_arrays(colour.artifacts["render_templates"] / "templates.zarr", ["rgb"])["rgb"].astype(int)
     assert (np.abs(rgb[..., 0] - rgb[..., 1]) > 10).mean() > 0.01  # the truck's colours
     assert colour.artifacts["render_templates"] != out / "render_templates"

@@ -16,40 +16,43 @@ from typer.testing import CliRunner
 from pipeline.stand_in import encoders_sentence, paper_configuration, paper_line, stand_in_notice
 
 ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_NOTICE = ("note: fpfh + colortex are weight-free stand-ins for the paper's GeDi + DINOv2 ViT-L/14; fetch those "
-                  "with `freeze weights fetch gedi dinov2-vitl14` and run with --config geometric=gedi "
-                  "visual=dinov2-vitl14")
+DEFAULT_NOTICE = ("note: fpfh + colortex are weight-free stand-ins for the paper's GeDi + DINOv2 ViT-g/14; fetch those "
+                  "with `freeze weights fetch gedi dinov2-vitg14` and run with --config geometric=gedi "
+                  "visual=dinov2-vitg14")
 
 
 def test_the_default_encoders_are_named_as_stand_ins_for_the_paper_s():
-    assert paper_configuration() == {"geometric": ("gedi", "GeDi"), "visual": ("dinov2-vitl14", "DINOv2 ViT-L/14")}
+    assert paper_configuration() == {"geometric": ("gedi", "GeDi"), "visual": ("dinov2-vitg14", "DINOv2 ViT-g/14")}
     assert stand_in_notice("fpfh", "colortex") == DEFAULT_NOTICE
     # each command says how to switch with its own options
-    assert stand_in_notice("fpfh", "colortex", form="estimate").endswith("run with --geometric gedi --visual dinov2-vitl14")
-    assert stand_in_notice("fpfh", "colortex", form="freeze").endswith("run with -c geometric=gedi -c visual=dinov2-vitl14")
+    assert stand_in_notice("fpfh", "colortex", form="estimate").endswith("run with --geometric gedi --visual dinov2-vitg14")
+    assert stand_in_notice("fpfh", "colortex", form="freeze").endswith("run with -c geometric=gedi -c visual=dinov2-vitg14")
     # one stand-in: only it is named, with the one paper encoder that replaces it
     assert stand_in_notice("gedi", "colortex") == (
-        "note: colortex is a weight-free stand-in for the paper's DINOv2 ViT-L/14; fetch it with "
-        "`freeze weights fetch dinov2-vitl14` and run with --config visual=dinov2-vitl14")
+        "note: colortex is a weight-free stand-in for the paper's DINOv2 ViT-g/14; fetch it with "
+        "`freeze weights fetch dinov2-vitg14` and run with --config visual=dinov2-vitg14")
     assert stand_in_notice("fpfh", "none") == (
         "note: fpfh is a weight-free stand-in for the paper's GeDi; fetch it with `freeze weights fetch gedi` and run "
         "with --config geometric=gedi")
 
 
-@pytest.mark.parametrize("geometric, visual", [("gedi", "dinov2-vitl14"), ("gedi", "dinov2-vits14"),
+@pytest.mark.parametrize("geometric, visual", [("gedi", "dinov2-vitg14"), ("gedi", "dinov2-vitl14"),
                                                ("none", "dinov2-vitb14"), ("gedi", "no-such-manifest")])
 def test_no_notice_when_no_encoder_is_a_stand_in(geometric, visual):
     assert stand_in_notice(geometric, visual) is None
 
 
 def test_pose_sentence_names_the_encoders_that_ran():
-    assert encoders_sentence("gedi", "dinov2-vitl14") == "gedi + dinov2-vitl14: the paper's configuration (GeDi + DINOv2 ViT-L/14)"
+    assert encoders_sentence("gedi", "dinov2-vitg14") == "gedi + dinov2-vitg14: the paper's configuration (GeDi + DINOv2 ViT-g/14)"
     assert encoders_sentence("fpfh", "colortex", form="estimate") == (
-        "fpfh + colortex: weight-free stand-ins for the paper's GeDi + DINOv2 ViT-L/14; fetch those with "
-        "`freeze weights fetch gedi dinov2-vitl14` and run with --geometric gedi --visual dinov2-vitl14")
+        "fpfh + colortex: weight-free stand-ins for the paper's GeDi + DINOv2 ViT-g/14; fetch those with "
+        "`freeze weights fetch gedi dinov2-vitg14` and run with --geometric gedi --visual dinov2-vitg14")
     # not the paper's size, not a stand-in: nothing false, the paper's configuration named beside
     assert encoders_sentence("gedi", "dinov2-vits14") == (
-        "gedi + dinov2-vits14; the paper's configuration is GeDi + DINOv2 ViT-L/14")
+        "gedi + dinov2-vits14; the paper's configuration is GeDi + DINOv2 ViT-g/14")
+    # ViT-L/14 is a lighter option, not the paper's
+    assert encoders_sentence("gedi", "dinov2-vitl14") == (
+        "gedi + dinov2-vitl14; the paper's configuration is GeDi + DINOv2 ViT-g/14")
     assert encoders_sentence("fpfh", "colortex-intensity").startswith(
         "fpfh + colortex-intensity: fpfh is a weight-free stand-in for the paper's GeDi;")
 
@@ -68,9 +71,9 @@ def test_names_come_from_the_manifests_flags(tmp_path):
         "note: cheap3d is a weight-free stand-in for the paper's GeDi; fetch it with `freeze weights fetch deep3d` "
         "and run with --config geometric=deep3d")
     assert encoders_sentence("deep3d", "bigvit", manifest_dir=tmp_path) == (
-        "deep3d + bigvit: the paper's configuration (GeDi + DINOv2 ViT-G/14)")
+        "deep3d + bigvit: the paper's configuration (GeDi + DINOv2 ViT-g/14)")
     assert paper_line(manifest_dir=tmp_path) == (
-        "the paper's configuration is deep3d + bigvit (GeDi + DINOv2 ViT-G/14): fetch it with "
+        "the paper's configuration is deep3d + bigvit (GeDi + DINOv2 ViT-g/14): fetch it with "
         "`freeze weights fetch deep3d bigvit` and run with --config geometric=deep3d visual=bigvit")
 
 
@@ -82,17 +85,17 @@ def test_encoders_command_marks_the_paper_s_and_the_stand_ins(monkeypatch, tmp_p
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
     roles = {r["manifest"]: r["role"] for r in doc["manifests"]}
-    assert {m for m, r in roles.items() if r == "paper"} == {"gedi", "dinov2-vitl14"}
+    assert {m for m, r in roles.items() if r == "paper"} == {"gedi", "dinov2-vitg14"}
     assert {m for m, r in roles.items() if r == "stand-in"} == {"fpfh", "colortex"}
     assert roles["dinov2-vits14"] == roles["gedi-r03"] == ""
     paper = doc["paper_configuration"]
-    assert (paper["geometric"], paper["visual"]) == ("gedi", "dinov2-vitl14")
-    assert paper["fetch"] == "freeze weights fetch gedi dinov2-vitl14"
+    assert (paper["geometric"], paper["visual"]) == ("gedi", "dinov2-vitg14")
+    assert paper["fetch"] == "freeze weights fetch gedi dinov2-vitg14"
     text = CliRunner().invoke(app, ["encoders"])
     assert text.exit_code == 0, text.output
     after_table = text.output[text.output.rindex("└"):]
     [line] = [ln for ln in after_table.splitlines() if "paper's configuration" in ln]
-    assert line == paper_line() and "freeze weights fetch gedi dinov2-vitl14" in line
+    assert line == paper_line() and "freeze weights fetch gedi dinov2-vitg14" in line
 
 
 def test_report_says_it_once_under_the_run_s_encoders(tmp_path, monkeypatch):
@@ -105,10 +108,10 @@ def test_report_says_it_once_under_the_run_s_encoders(tmp_path, monkeypatch):
                                                                                   ("visual", "colortex"))}
     text = html.build_report(rp, "fake", samples=0)
     assert text.count("weight-free stand-ins") == 1
-    assert html.stand_in_note(rp.encoders) in text and "freeze weights fetch gedi dinov2-vitl14" in text
+    assert html.stand_in_note(rp.encoders) in text and "freeze weights fetch gedi dinov2-vitg14" in text
     assert text.index("stand-ins") < text.index("<h2>1.")  # with the encoders, at the top
     rp.encoders = {k: {"manifest": m, "signature": m, "version": 1} for k, m in (("geometric", "gedi"),
-                                                                                  ("visual", "dinov2-vitl14"))}
+                                                                                  ("visual", "dinov2-vitg14"))}
     assert "stand-in" not in html.build_report(rp, "fake", samples=0)
 
 
@@ -162,4 +165,11 @@ def test_freeze_run_says_it_once_with_its_own_options(tmp_path):
     assert proc.returncode == 0, out[-3000:]
     assert "rule synth" in out  # Snakemake ran a job (its onstart ran) ...
     assert out.count("stand-in") == 1  # ... and did not repeat the notice
-    assert "run with -c geometric=gedi -c visual=dinov2-vitl14" in out.replace("\n", "")
+    assert "run with -c geometric=gedi -c visual=dinov2-vitg14" in out.replace("\n", "")
+
+
+def test_weights_fetch_without_names_gives_the_paper_s_fetch():
+    from pipeline.weights.catalog import UnknownWeights, select
+
+    with pytest.raises(UnknownWeights, match=r"the paper's configuration: `freeze weights fetch gedi dinov2-vitg14`$"):
+        select([])

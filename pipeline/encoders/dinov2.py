@@ -30,10 +30,22 @@ snapshot is a Hugging Face directory like any other, keyed on the checksum of it
 their artifacts).
 
 Encoding: the (B, S, S, 3) uint8 crops are scaled to [0, 1], normalised with the
-ImageNet mean and std, and passed through the ViT under ``torch.inference_mode``
-(position embeddings are interpolated by transformers when S != 518); the output is the
-final-layernorm patch tokens as a (B, D, S/14, S/14) float32 map (the lifting code
-upsamples it bilinearly). ``precision="bf16"`` runs under bf16 autocast, ``"fp32"``
+ImageNet mean and std, and passed through the ViT under ``torch.inference_mode``; the
+output is the final-layernorm patch tokens as a (B, D, S/14, S/14) float32 map (the
+lifting code upsamples it bilinearly), the official ``x_norm_patchtokens``.
+
+Position embeddings. The checkpoints hold a 37 x 37 grid (518 px); any other input
+size resizes it, and the resize changes the features (at 224 px, transformers 5.x's own
+``size=(16, 16)`` resize moved tokens by up to 0.45 against the official model, cosine
+0.994). Whatever transformers is installed, the embeddings layer of the loaded model is
+replaced by :class:`OfficialEmbeddings`, which resizes exactly as the official
+backbones' ``interpolate_pos_encoding`` does for that variant
+(:data:`OFFICIAL_INTERPOLATION`: the plain models by ``scale_factor=(g + 0.1) / 37``,
+bicubic, no antialias; the register models to ``size=g``, bicubic, with antialias).
+The rest of the network is transformers'; ``tests/test_dinov2_official.py`` compares
+the patch tokens with the official code (``../shared/reference/dinov2-official``) on
+random weights for every family at 224, 448 and 518 px (fp32 max abs difference
+<= 1e-4). ``precision="bf16"`` runs under bf16 autocast, ``"fp32"``
 in float32, ``"auto"`` (default) picks bf16 when the hardware has it (CUDA with bf16,
 or a CPU whose ``/proc/cpuinfo`` lists ``amx_bf16`` or ``avx512_bf16``) and fp32
 otherwise; bf16 requested on hardware without it falls back to fp32 with a warning.
@@ -52,6 +64,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import os
 import re
 import warnings
@@ -60,6 +73,8 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn as nn
+import torch.nn.functional as F
 
 from pipeline.encoders.registry import VisualEncoder, WeightsNotFound, register_encoder, resolve_weights_dir, resolve_weights_path
 from pipeline.encoders.torch_device import resolve_device
@@ -80,6 +95,10 @@ MODEL_CONFIGS: dict[str, dict[str, Any]] = {
 }
 
 _HF_WEIGHT_PATTERNS = ("*.safetensors", "*.bin")
+
+#: The official backbones' position-embedding resize, per variant (registers or not):
+#: ``(interpolate_offset, interpolate_antialias)`` as hub/backbones.py passes them.
+OFFICIAL_INTERPOLATION: dict[bool, tuple[float, bool]] = {False: (0.1, False), True: (0.0, True)}
 
 
 # --- model names and weight files ---------------------------------------------------
@@ -392,21 +411,105 @@ def hf_config_for(model: str, arch: dict[str, Any] | None = None):
     return Dinov2Config(**common)
 
 
+def official_position_embeddings(
+    pos_embed: torch.Tensor, rows: int, cols: int, offset: float, antialias: bool
+) -> torch.Tensor:
+    """Position embeddings (1, 1 + rows * cols, D) for a rows x cols patch grid, resized
+    from the checkpoint's (1, 1 + M * M, D) as the official ``interpolate_pos_encoding``
+    does: unchanged for the trained square grid; else the M x M grid resized bicubically
+    in float32, by ``scale_factor = (rows + offset) / M`` (and cols) when ``offset`` is
+    non-zero, to ``size = (rows, cols)`` otherwise, with ``antialias``; returned in the
+    dtype of ``pos_embed``."""
+    n = pos_embed.shape[1] - 1
+    if n == rows * cols and rows == cols:
+        return pos_embed
+    m = int(math.sqrt(n))
+    if m * m != n:
+        raise ValueError(f"dinov2: {n} position embeddings do not form a square grid")
+    dim = pos_embed.shape[-1]
+    grid = pos_embed[:, 1:].float().reshape(1, m, m, dim).permute(0, 3, 1, 2)
+    if offset:
+        # Python floats, as the official code computes them (not float32 tensors)
+        size_or_scale: dict[str, Any] = {"scale_factor": (float(rows + offset) / m, float(cols + offset) / m)}
+    else:
+        size_or_scale = {"size": (rows, cols)}
+    grid = F.interpolate(grid, mode="bicubic", antialias=antialias, **size_or_scale)
+    if grid.shape[-2:] != (rows, cols):
+        raise ValueError(f"dinov2: position embeddings resized to {tuple(grid.shape[-2:])}, expected {(rows, cols)}")
+    patches = grid.permute(0, 2, 3, 1).reshape(1, rows * cols, dim)
+    return torch.cat([pos_embed[:, :1].float(), patches], dim=1).to(pos_embed.dtype)
+
+
+class OfficialEmbeddings(nn.Module):
+    """The embeddings layer of a transformers DINOv2 model, computed as the official
+    ``prepare_tokens_with_masks``: patch projection, cls token, position embeddings
+    resized by :func:`official_position_embeddings`, then the register tokens after the
+    cls token. It holds the original layer's parameters under the same names (so the
+    model's state dict is unchanged). Masked tokens (``bool_masked_pos``) are not used
+    by the pipeline and are refused."""
+
+    def __init__(self, original: nn.Module, offset: float, antialias: bool) -> None:
+        super().__init__()
+        self.cls_token = original.cls_token
+        self.mask_token = original.mask_token
+        self.position_embeddings = original.position_embeddings
+        self.patch_embeddings = original.patch_embeddings
+        self.register_tokens = getattr(original, "register_tokens", None)
+        self.dropout = original.dropout
+        self.patch_size = PATCH_SIZE
+        self.offset = float(offset)
+        self.antialias = bool(antialias)
+
+    def forward(self, pixel_values: torch.Tensor, bool_masked_pos: torch.Tensor | None = None, **_: Any) -> torch.Tensor:
+        """pixel_values (B, 3, H, W) -> tokens (B, 1 [+ registers] + H/14 * W/14, D)."""
+        if bool_masked_pos is not None:
+            raise ValueError("dinov2: masked patch tokens are not supported")
+        batch, _, height, width = pixel_values.shape
+        proj = self.patch_embeddings.projection
+        x = proj(pixel_values.to(proj.weight.dtype)).flatten(2).transpose(1, 2)
+        x = torch.cat([self.cls_token.expand(batch, -1, -1), x], dim=1)
+        pos = official_position_embeddings(self.position_embeddings, height // PATCH_SIZE, width // PATCH_SIZE,
+                                           self.offset, self.antialias)
+        x = x + pos.to(x.dtype)
+        if self.register_tokens is not None:
+            x = torch.cat([x[:, :1], self.register_tokens.expand(batch, -1, -1), x[:, 1:]], dim=1)
+        return self.dropout(x)
+
+
+def with_official_embeddings(net: torch.nn.Module) -> torch.nn.Module:
+    """``net`` (a transformers Dinov2Model / Dinov2WithRegistersModel) with its
+    embeddings layer replaced by :class:`OfficialEmbeddings` for its variant (in place;
+    also returned). Idempotent."""
+    if not isinstance(net.embeddings, OfficialEmbeddings):
+        registers = bool(getattr(net.config, "num_register_tokens", 0) or 0)
+        net.embeddings = OfficialEmbeddings(net.embeddings, *OFFICIAL_INTERPOLATION[registers])
+    return net
+
+
 def load_official(path: str | os.PathLike, model: str) -> torch.nn.Module:
-    """A transformers model with the official state dict ``path`` loaded strictly."""
+    """A transformers model (float32) with the official state dict ``path`` loaded strictly.
+
+    The model is built on the meta device and takes the loaded tensors as its
+    parameters: a random initialisation first would cost 31 s and a second copy of the
+    weights for ViT-g/14 (1.1 B parameters) on this CPU."""
     from transformers import Dinov2Model, Dinov2WithRegistersModel
 
     config = hf_config_for(model)
     cls = Dinov2WithRegistersModel if getattr(config, "num_register_tokens", 0) else Dinov2Model
-    net = cls(config)
+    with torch.device("meta"):
+        net = cls(config)
     sd = torch.load(path, map_location="cpu", weights_only=True)
     if isinstance(sd, dict) and "model" in sd and isinstance(sd["model"], dict):
         sd = sd["model"]
-    mapped = official_to_hf(sd, net.state_dict().keys())
+    mapped = {k: v.float() if v.is_floating_point() else v for k, v in official_to_hf(sd, net.state_dict().keys()).items()}
+    del sd
     try:
-        net.load_state_dict(mapped, strict=True)
+        net.load_state_dict(mapped, strict=True, assign=True)
     except RuntimeError as exc:
         raise ValueError(f"dinov2: {path} does not match model {model!r}: {exc}") from exc
+    left = [n for n, t in [*net.named_parameters(), *net.named_buffers()] if t.is_meta]
+    if left:  # a buffer outside the state dict (none in the releases tested) would stay empty
+        raise ValueError(f"dinov2: {path}: the model's {', '.join(left)} not loaded from the state dict")
     return net
 
 
@@ -439,7 +542,9 @@ class Dinov2Encoder(VisualEncoder):
     """
 
     name = "dinov2"
-    version = "1"
+    # 2: position embeddings resized as the official backbones (OfficialEmbeddings),
+    # not by the installed transformers
+    version = "2"
 
     def __init__(
         self,
@@ -538,7 +643,7 @@ class Dinov2Encoder(VisualEncoder):
                 net, self._fetched = self._fetched, None
             else:
                 net = load_hf_dir(self.weights_path) if self.hf_dir else load_official(self.weights_path, self.model)
-            self._net = net.eval().to(self.device)
+            self._net = with_official_embeddings(net).eval().to(self.device)
         return self._net
 
     def encode(self, images: np.ndarray) -> np.ndarray:

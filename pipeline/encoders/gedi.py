@@ -18,7 +18,23 @@ for point cloud registration", TPAMI 2022) describes a keypoint by the points ar
    ``pnet_model_state_dict``): a quaternion network aligns the patch, three PointNet++
    set-abstraction levels (128 centres r=0.2 k=32; 64 centres r=0.4 k=16; global) with
    farthest-point sampling and ball query from :mod:`pipeline.encoders.gedi_ops`, and
-   a head to a 32-d L2-normalised descriptor.
+   a head to a 32-d L2-normalised descriptor. The quaternion becomes a rotation as in
+   the official code (:func:`official_rotation`: torchgeometry 0.1.2's quaternion ->
+   angle-axis -> matrix, whose ``theta + 1e-6`` division and small-angle branch put it
+   about 1e-6 off the exact rotation), not by the exact formula: the samples and groups
+   of the next levels are decided on the rotated coordinates, and 1e-6 is enough to
+   flip a decision on a few keypoints in a thousand (descriptor moved by up to 0.1).
+
+Agreement with the official code (github fabiopoiesi/gedi): frame and its sign, 1/r
+scaling, rotation, farthest-point sampling and ball query follow it step by step; the
+frame is built in float64 here (float32 there: up to 3e-4 apart), the rotation equals
+torchgeometry's to the bit on the CPU, and sampling and grouping equal a float32
+transcription of the reference CUDA kernels, apart from which of exactly tied FPS
+candidates is taken (the kernel's thread reduction breaks ties by thread position, this
+takes the lowest index; it changed no descriptor, :mod:`pipeline.encoders.gedi_ops`).
+``tests/test_gedi_official.py`` checks each step and runs whole clouds (800 keypoints
+of a model and of a scene) against an oracle path built from torchgeometry and the
+transcribed kernels.
 
 Multi-scale as in the paper: radii 0.3 and 0.4 of the object diameter, one 32-d
 descriptor each, concatenated (64-d).
@@ -58,8 +74,9 @@ threads than on 1, ``benchmarks/results/gedi_speed.md``); independent calls do n
 wait. One thread per call also makes the result independent of the thread count.
 
 Descriptors differ from ``GeDiNet.forward`` by float rounding only (cosine > 0.9999 in
-``tests/test_encoders_gedi.py``); sampling and grouping are bit for bit the reference
-kernels' on the same input.
+``tests/test_encoders_gedi.py``): both rotate with :func:`official_rotation`, and
+sampling and grouping are bit for bit the same on the same input. (The quaternions of
+the two paths differ by float rounding, which can itself flip a decision, rarely.)
 
 Weights: the official checkpoint (``data/chkpts/3dmatch/chkpt.tar`` of the GeDi
 repository's ``download_data.py``) is a ``torch.load`` dict whose
@@ -141,7 +158,10 @@ class QuaternionNet(nn.Module):
 
 
 def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (B, 3, 3) of unit quaternions (B, 4) in (w, x, y, z) order."""
+    """Rotation matrices (B, 3, 3) of unit quaternions (B, 4) in (w, x, y, z) order, by
+    the exact closed form. Not what the network uses (:func:`official_rotation`, about
+    1e-6 away from this): kept for version 1's path in ``benchmarks/gedi_speed.py`` and
+    for the tests that show the difference."""
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
@@ -151,6 +171,75 @@ def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
         ],
         dim=-1,
     ).reshape(-1, 3, 3)
+
+
+ROTVEC_EPS = 1e-6  # added to the angle before dividing by it, and the small-angle cut on angle^2
+
+
+def quaternion_to_rotvec(q: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors (B, 3) (axis times angle, radians) of unit quaternions (B, 4)
+    (w, x, y, z), with the arithmetic of ``torchgeometry.quaternion_to_angle_axis``
+    (version 0.1.2), which the official GeDi code uses.
+
+    With s = |(x, y, z)|: the angle is 2 atan2(s, w), or 2 atan2(-s, -w) when w < 0 (the
+    quaternion -q, same rotation, an angle in (-pi, 0]); the vector is (x, y, z) times
+    angle / s, or times 2 when s = 0. Each step is one float op in the input's dtype,
+    as there: the network's float32.
+    """
+    # Component views of q, not copies: torch on the CPU evaluates atan2 on strided
+    # inputs with the scalar libm function and on contiguous ones with its vectorised
+    # one, which can differ in the last bit; the reference reads w as such a view.
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    s2 = x * x + y * y + z * z
+    s = torch.sqrt(s2)
+    angle = 2.0 * torch.where(w < 0.0, torch.atan2(-s, -w), torch.atan2(s, w))
+    k = torch.where(s2 > 0.0, angle / s, torch.full_like(s, 2.0))
+    return torch.stack([x * k, y * k, z * k], dim=1)
+
+
+def rotvec_to_matrix(v: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (B, 3, 3) of rotation vectors ``v`` (B, 3), with the arithmetic
+    of ``torchgeometry.angle_axis_to_rotation_matrix`` (version 0.1.2; the top-left 3x3
+    of its 4x4 result).
+
+    theta^2 = v.v as a batched (1, 3) @ (3, 1) product. Above ``ROTVEC_EPS`` Rodrigues'
+    formula R = cos(t) I + (1 - cos(t)) a a^T + sin(t) [a]_x with the axis
+    a = v / (t + ROTVEC_EPS): not v / t, so a is short by a factor 1 - 1e-6 / t and R is
+    off the exact rotation by about 1e-6 (what the official network was trained and is
+    run with). At or below it the first-order R = I + [v]_x. Each entry is summed in
+    the reference's order, e.g. R[1, 0] = a_z sin(t) + (a_x a_y)(1 - cos(t)).
+    """
+    theta2 = (v.unsqueeze(1) @ v.unsqueeze(2)).reshape(-1)  # (B,): a product, as the reference
+    theta = torch.sqrt(theta2)
+    a = v / (theta + ROTVEC_EPS).unsqueeze(1)
+    ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+    c, sn = torch.cos(theta), torch.sin(theta)
+    one_c = 1.0 - c
+    rodrigues = torch.stack(
+        [
+            c + ax * ax * one_c, ax * ay * one_c - az * sn, ay * sn + ax * az * one_c,
+            az * sn + ax * ay * one_c, c + ay * ay * one_c, -ax * sn + ay * az * one_c,
+            -ay * sn + ax * az * one_c, ax * sn + ay * az * one_c, c + az * az * one_c,
+        ],
+        dim=1,
+    )
+    vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+    one = torch.ones_like(vx)
+    first_order = torch.stack([one, -vz, vy, vz, one, -vx, -vy, vx, one], dim=1)
+    # the cut compares in v's dtype (float32(1e-6) for the network), as the reference's mask
+    large = (theta2 > ROTVEC_EPS).unsqueeze(1)
+    return torch.where(large, rodrigues, first_order).reshape(-1, 3, 3)
+
+
+def official_rotation(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (B, 3, 3) that the official GeDi code applies to the patches for
+    the network's unit quaternions ``q`` (B, 4) (w, x, y, z): quaternion -> rotation
+    vector -> matrix through torchgeometry 0.1.2's formulas (:func:`quaternion_to_rotvec`,
+    :func:`rotvec_to_matrix`), equal to it to the bit on the CPU
+    (``tests/test_gedi_official.py``). The exact matrix (:func:`quaternion_to_matrix`)
+    differs by about 1e-6, enough to flip a sampling or grouping decision on a few
+    keypoints in a thousand."""
+    return rotvec_to_matrix(quaternion_to_rotvec(q))
 
 
 class SetAbstraction(nn.Module):
@@ -213,7 +302,7 @@ class GeDiNet(nn.Module):
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
         """patches (B, 3, N) in the LRF, scaled by 1/r -> descriptors (B, dim), unit norm."""
-        rot = quaternion_to_matrix(self.qnet(patches))
+        rot = official_rotation(self.qnet(patches))
         xyz = (rot @ patches).transpose(1, 2).contiguous()
         xyz, feats = self.samodule1(xyz, None)
         xyz, feats = self.samodule2(xyz, feats)
@@ -444,7 +533,7 @@ class GeDiInference:
         pooled = pooled_layers(lambda a, b: top(pts[a:b]), self.q_points[1:], patch, B)  # (B, 1024)
         q = run_layers(self.q_head, pooled)
         q = q + torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
-        return quaternion_to_matrix(F.normalize(q, p=2, dim=1))
+        return official_rotation(F.normalize(q, p=2, dim=1))
 
     def _grouped_level(
         self, sa: SetAbstraction, layers: Sequence[Dense], xyz: torch.Tensor, feats: torch.Tensor | None, ids: torch.Tensor
@@ -545,7 +634,10 @@ class GeDiEncoder(GeometricEncoder):
     name = "gedi"
     # 2: the inference path of GeDiInference (same descriptors up to float rounding,
     # cosine > 0.9999); new bits, so a new cache key.
-    version = "2"
+    # 3: the official code's rotation (torchgeometry's formulas, not the exact matrix),
+    # the kernel's float32 radius * radius and its double FPS skip test: a few
+    # descriptors in a thousand change by up to 0.1.
+    version = "3"
 
     def __init__(
         self,

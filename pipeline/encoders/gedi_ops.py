@@ -5,25 +5,44 @@ trained with (``pointnet2_ops``), so that official weights see the same patches:
 
 - :func:`furthest_point_sample`: the first sample is always index 0; each next sample
   is the point whose distance (squared) to the set chosen so far is largest, the
-  running distance starting at ``1e10``; ties go to the lowest index. Points with
-  ``|p|^2 <= 1e-3`` are never chosen after the first (the kernel skips them; GeDi's
-  patches are centred on the keypoint, so this excludes a small ball around it). When
-  every point is skipped the kernel returns index 0, and so does this.
+  running distance starting at ``1e10``. Points with ``|p|^2 <= 1e-3`` are never chosen
+  after the first (the kernel skips them; GeDi's patches are centred on the keypoint,
+  so this excludes a small ball around it). The kernel computes ``|p|^2`` in float32 and
+  compares it with the double literal ``1e-3`` (the float promoted to double), and so
+  does this: a point with ``|p|^2`` equal to ``float32(1e-3)``, which is above 1e-3, is
+  kept. When every point is skipped the kernel returns index 0, and so does this.
+  Exact ties (equal largest distances, e.g. duplicated points): the kernel's threads
+  each keep the first of their own points (thread t scans t, t + T, t + 2T, ...), then
+  a tree reduction over the threads keeps the lower slot's candidate on equal values,
+  so which tied point wins depends on the threads' places in that tree, not only on
+  the index. This one takes the lowest index (``argmax``). The two agree whenever the
+  largest distance is unique. GeDi's patches are drawn with replacement, so ties are
+  frequent, but between copies of one point (same coordinates: same samples), or, once
+  a patch has fewer distinct points than samples, between points already chosen (a
+  repeat of another centre: the same distinct centres and groups, and repeats change
+  no max-pool). No descriptor changed: in ``tests/test_gedi_official.py`` the encoder
+  against the same computation with the kernel's tie rule gives the same descriptors
+  on 1600 keypoints (identical bits when written).
   :func:`furthest_point_sample_with_sqdist` also returns the distances it computed on
   its way, which a ball query around the samples can reuse.
 - :func:`ball_query`: for each query, the indices of the first ``nsample`` points in
-  index order with squared distance strictly below ``radius**2``; when fewer are found
-  the remaining slots repeat the first hit; a query with no hit gets all zeros.
-  :func:`ball_query_hits` gives the same hits without the padding (a flat list of
-  (query, point) pairs), for callers that only max-pool over each group, where the
-  repeats change nothing.
+  index order with squared distance strictly below the kernel's ``radius * radius``,
+  computed as the kernel computes it: the radius rounded to float32, then squared in
+  float32 (for GeDi's radii 0.2 and 0.4 that is one ulp above ``float32(radius**2)``,
+  :func:`radius_squared`); when fewer are found the remaining slots repeat the first
+  hit; a query with no hit gets all zeros. :func:`ball_query_hits` gives the same hits
+  without the padding (a flat list of (query, point) pairs), for callers that only
+  max-pool over each group, where the repeats change nothing.
 - :func:`group_points` / :func:`gather_points`: index gathers with batch dimension.
 - :func:`first_of_each_key`: deduplication of flat rows, for running shared MLPs on
   distinct rows only.
 
-Squared distances are computed as the kernels compute them, in float32: per coordinate
-difference, squared, summed x + y + z in that order (no fused multiply-add), so that
-samples and groups are the same as the kernels' to the bit.
+Squared distances are computed as the kernels' source writes them, in float32: per
+coordinate difference, squared, summed x + y + z in that order (no fused multiply-add),
+so that samples and groups are the same as a float32 transcription of the kernels to
+the bit (``tests/test_gedi_official.py`` checks this against such a transcription).
+The compiled kernels may differ from their source in the last bit where nvcc fuses a
+product and a sum (its default); that is not modelled here, nor checked on a GPU.
 
 All functions are batched over the leading dimension ``B`` and keep the input's device.
 """
@@ -32,8 +51,17 @@ from __future__ import annotations
 
 import torch
 
-FPS_SKIP_MAG2 = 1e-3  # the reference kernel's `if (mag <= 1e-3) continue;`
+FPS_SKIP_MAG2 = 1e-3  # the reference kernel's `if (mag <= 1e-3) continue;`: a double literal
 FPS_INIT_DIST = 1e10  # the reference wrapper's initial running distance
+
+
+def radius_squared(radius: float) -> float:
+    """The ball query's threshold on squared distances for ``radius``, as the kernel
+    computes it: ``radius`` is a float32 there and ``radius * radius`` a float32
+    product. (``float32(radius**2)`` is one ulp lower for 0.2 and 0.4, which would drop
+    a point whose float32 squared distance is exactly that value.)"""
+    r = torch.tensor(float(radius), dtype=torch.float32)
+    return float(r * r)
 
 
 def _planes(xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -84,11 +112,14 @@ def _farthest_points(xyz: torch.Tensor, npoint: int, keep_sqdist: bool) -> tuple
     if N == 0:
         raise ValueError("furthest_point_sample: empty point set")
     x, y, z = _planes(xyz)
-    mag = x * x + y * y + z * z
+    mag = x * x + y * y + z * z  # float32, as the kernel's `float mag`
+    # The kernel compares the float mag with the double 1e-3 (promoted to double); a
+    # float32 comparison would round 1e-3 up to float32(1e-3) and skip one value more.
+    keep = mag.double() > FPS_SKIP_MAG2
     # Skipped points start at -1: min(-1, d >= 0) keeps them at -1, so they never win,
     # and when every point is skipped argmax over all -1 is index 0, as the kernel's
     # besti = 0. Valid points start at the wrapper's 1e10.
-    temp = torch.where(mag > FPS_SKIP_MAG2, FPS_INIT_DIST, -1.0).float()
+    temp = torch.where(keep, FPS_INIT_DIST, -1.0).float()
     out = torch.zeros((B, npoint), dtype=torch.long, device=xyz.device)
     sqdist = torch.empty((B, npoint, N), device=xyz.device) if keep_sqdist else None
     old = torch.zeros((B, 1), dtype=torch.long, device=xyz.device)
@@ -107,7 +138,9 @@ def _farthest_points(xyz: torch.Tensor, npoint: int, keep_sqdist: bool) -> tuple
     for j in range(1, npoint):
         d = distances_to_old(sqdist[:, j - 1] if sqdist is not None else d)
         torch.minimum(temp, d, out=temp)
-        old = temp.argmax(dim=1, keepdim=True)  # first maximal index, as the kernel's strict >
+        # first maximal index; the kernel's reduction may pick another of exactly tied
+        # points (see the module doc)
+        old = temp.argmax(dim=1, keepdim=True)
         out[:, j] = old[:, 0]
     if sqdist is not None:
         distances_to_old(sqdist[:, npoint - 1])
@@ -120,7 +153,8 @@ def ball_query_hits(
     """The hits of :func:`ball_query` without its padding, as two flat int64 tensors
     ``(query, point)`` of equal length: ``query`` indexes the flattened (B * S) queries
     of ``new_xyz`` (B, S, 3), ``point`` the points of ``xyz`` (B, N, 3) in the same batch
-    element. Each query's hits are its first ``nsample`` points in index order; a query
+    element. Each query's hits are its first ``nsample`` points in index order with
+    squared distance below :func:`radius_squared` of ``radius``; a query
     with no hit gets point 0 (the kernel's all-zero row). Sorted by query, then point.
     ``sqdist``: the squared distances (B, S, N) when already at hand
     (:func:`furthest_point_sample_with_sqdist`)."""
@@ -134,7 +168,7 @@ def ball_query_hits(
         sqdist = _sqdist(new_xyz, xyz)
     elif sqdist.shape != (B, S, N):
         raise ValueError(f"ball_query: sqdist must be (B, S, N) = {(B, S, N)}, got {tuple(sqdist.shape)}")
-    r2 = torch.tensor(float(radius) ** 2, dtype=torch.float32, device=xyz.device)
+    r2 = torch.tensor(radius_squared(radius), dtype=torch.float32, device=xyz.device)  # exact: a float32 value
     query, point = (sqdist < r2).reshape(B * S, N).nonzero(as_tuple=True)  # row-major: by query, then point
     counts = torch.bincount(query, minlength=B * S)
     if bool((counts == 0).any()):  # no hit: the kernel's zeros, i.e. point 0

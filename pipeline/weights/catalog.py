@@ -17,6 +17,7 @@ from typing import Any, Iterable, Literal
 
 from pipeline import config as cfg
 from pipeline.config import EncoderManifest, ManifestError, WeightDownload
+from pipeline.stand_in import paper_fetch
 from pipeline.store import file_digest
 from pipeline.weights.fetch import judge_file, part_path, pinned_digest, read_sidecar, sidecar_path, target_path
 
@@ -86,8 +87,10 @@ def select(names: Iterable[str], *, fetch_all: bool = False, source: Source = "o
     if fetch_all:
         names = list(dict.fromkeys([*names, *listed]))
     if not names:
+        paper = paper_fetch(Path(manifest_dir) if manifest_dir is not None else manifest_dir_default())
         raise UnknownWeights(f"name the encoders to fetch weights for, or pass --all; manifests with downloads: "
-                             f"{', '.join(listed) or 'none'}")
+                             f"{', '.join(listed) or 'none'}"
+                             + (f"; the paper's configuration: `{paper}`" if paper else ""))
     unknown = [n for n in names if n not in listed]
     if unknown:
         raise UnknownWeights(f"no encoder manifest with downloads named {', '.join(map(repr, unknown))}; those "
