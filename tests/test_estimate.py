@@ -161,6 +161,7 @@ def test_box_rule_keeps_the_object_and_drops_the_table(case):
 def test_cli_writes_pose_overlay_and_stage_artifacts(case, tmp_path, monkeypatch):
     from pipeline.store import load_arrays, read_manifest, read_table
 
+    _run(case, mask=case["mask"])  # the model side, built by an earlier test of the module or now
     monkeypatch.setenv("FREEZE_CACHE", str(case["cache"]))
     out = tmp_path / "cli"
     x, y, w, h = case["bbox"]
