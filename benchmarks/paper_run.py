@@ -95,9 +95,10 @@ def run(dataset: str, geometric: str, visual: str, device: str, weights: Path, c
         torch.cuda.reset_peak_memory_stats()
     seconds: dict[str, float] = {}
     skipped: list[str] = []
-    plan = None
+    plan = RunPlan(run_manifest)[dataset]
     for stage, spec in STAGES.items():
-        plan = RunPlan(run_manifest)[dataset]  # after synth, the dataset's layout is known
+        if stage == "render_templates":  # planned again once synth has written the dataset: its layout is known
+            plan = RunPlan(run_manifest)[dataset]
         if spec.synthetic_only and stage not in plan.stages:
             continue
         for item in items_of(plan, stage):
@@ -111,7 +112,6 @@ def run(dataset: str, geometric: str, visual: str, device: str, weights: Path, c
                 torch.cuda.synchronize()
             seconds[stage] = seconds.get(stage, 0.0) + time.perf_counter() - t0
             print(f"  {stage} {item}: {time.perf_counter() - t0:.1f} s", flush=True)
-    assert plan is not None
     scores = json.loads((plan["score"].item_dir("all") / "scores.json").read_text())["summary"]
     n_images = sum(len(v) for v in plan.scene_images.values())
     encoders = dict(zip(("geometric", "visual"), map(encoder_runtime, build_encoders(run_manifest))))
