@@ -3,6 +3,7 @@
 # of parameters, encoders or stage code versions builds new artifacts beside the old
 # ones and reruns only the stages that depend on the change.
 import os
+import shlex
 import sys
 
 from snakemake.utils import min_version
@@ -10,8 +11,9 @@ from snakemake.utils import min_version
 min_version("9.0")
 
 from pipeline.cli_common import USER_ERRORS
-from pipeline.config import load_run
+from pipeline.config import ManifestError, load_run
 from pipeline.plan import RunPlan
+from pipeline.run_cli import planned_manifests
 from pipeline.stage_graph import STAGES
 from pipeline.threads import ENV_VARS
 
@@ -22,11 +24,20 @@ try:
     for _ds in PLAN.dataset_names:
         _ok, _why = PLAN.available(_ds)
         if _ok:
+            # Planned here, inside the try: a dataset's plan is built on first use, and a
+            # missing or escaping prior found later, in a rule's input, is a traceback.
+            PLAN[_ds]
             DATASETS.append(_ds)
             for _note in PLAN.notes(_ds):
                 print(_note, file=sys.stderr)
         else:
             print(_why, file=sys.stderr)
+    # Every output path below is a wildcard pattern: a brace in the cache's path would be
+    # read as a wildcard of Snakemake's, and the rules would match nothing.
+    # (results/ and logs/ sit beside the cache, so its path covers theirs.)
+    if any(c in str(PLAN.cache) for c in "{}"):
+        raise ManifestError(f"the cache folder {PLAN.cache} holds a brace ({{ or }}), which Snakemake reads as a "
+                            "wildcard: set FREEZE_CACHE to a path without braces")
 except USER_ERRORS as _e:       # a bad option or manifest: its one line, not a traceback
     print(f"error: {_e}", file=sys.stderr)
     sys.exit(1)
@@ -47,13 +58,21 @@ LOGS = os.path.join(os.path.dirname(CACHE), "logs")
 PY = sys.executable
 
 
+def shell_word(value):
+    """``value`` (a path) as one word of a rule's shell command: quoted for the shell
+    (a space, a quote or a ``;`` in the clone's or the cache's path must neither split
+    the command nor run one), with its braces doubled, as Snakemake formats the command
+    again. Values Snakemake fills in use its own quoting instead (``{log:q}``)."""
+    return shlex.quote(str(value)).replace("{", "{{").replace("}", "}}")
+
+
 def stage_shell(stage):
     """Shell command of a stage job: the same entry point as `freeze stage`, kept to the
     rule's threads (the variables for the numeric libraries that read them at start-up;
     `--threads` for torch and OpenCV, see pipeline/threads.py)."""
     limits = " ".join(f"{v}={{threads}}" for v in ENV_VARS)
-    return (f"{limits} {PY} -m pipeline.cli stage {stage} --dataset {{wildcards.ds}} --item {{params.item}} "
-            f"--expect-sig {{wildcards.sig}} --threads {{threads}} > {{log}} 2>&1")
+    return (f"{limits} {shell_word(PY)} -m pipeline.cli stage {shell_word(stage)} --dataset {{wildcards.ds:q}} "
+            "--item {params.item:q} --expect-sig {wildcards.sig:q} --threads {threads} > {log:q} 2>&1")
 
 
 def stage_plan(wc, stage):
@@ -102,18 +121,25 @@ rule bop_all:
 
     It has no output file on purpose, so it runs on every call (about a second): the
     table is always that of the current run, and Snakemake cannot skip the stages of a
-    new configuration because an older table looks up to date."""
+    new configuration because an older table looks up to date.
+
+    Its inputs are the outputs of every job of the plan, not only the scores: Snakemake
+    schedules only the jobs its targets need, and an existing score would otherwise keep
+    an item that `freeze verify --repair` deleted upstream from being rebuilt. A rebuilt
+    item is newer than its dependents' outputs, so they rerun too (Snakemake's mtime
+    trigger), and give the same results from the same inputs."""
     input:
-        [str(PLAN[ds]["score"].manifest("all")) for ds in DATASETS],
+        [str(p) for p in planned_manifests(PLAN, DATASETS)],
     params:
         datasets=",".join(DATASETS),
         table=os.path.join(RESULTS, "ar_table.md"),
+        results=RESULTS,
     log:
         os.path.join(LOGS, "bop_all.log"),
     shell:
-        f"{PY} -m pipeline.cli table --out {{params.table}} --csv-dir {RESULTS} > {{log}} 2>&1"
-        + "".join(f" && {PY} -m pipeline.cli report --dataset {ds} --out {os.path.join(RESULTS, f'report_{ds}.html')}"
-                  " >> {log} 2>&1" for ds in DATASETS)
+        f"{shell_word(PY)} -m pipeline.cli table --out {{params.table:q}} --csv-dir {{params.results:q}} > {{log:q}} 2>&1"
+        + "".join(f" && {shell_word(PY)} -m pipeline.cli report --dataset {shell_word(ds)} "
+                  f"--out {shell_word(os.path.join(RESULTS, f'report_{ds}.html'))} >> {{log:q}} 2>&1" for ds in DATASETS)
 
 
 onstart:
@@ -124,6 +150,11 @@ onstart:
     _plugin = workflow.executor_plugin
     _why = missing_submitter(_plugin.name if _plugin is not None else None,
                              getattr(workflow.executor_settings, "submit_cmd", None))
+    if not _why:  # a status command in a path with a space or a `;`, run unquoted by the executor
+        from pipeline.cluster_submit import unquoted_status_command
+
+        _why = unquoted_status_command(_plugin.name if _plugin is not None else None,
+                                       getattr(workflow.executor_settings, "status_cmd", None))
     if _why:
         print(f"error: {_why}", file=sys.stderr)
         sys.exit(1)

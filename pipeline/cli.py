@@ -65,10 +65,11 @@ def stage(
     try:
         run_stage(plan, name, item, progress=progress)
     except USER_ERRORS as e:  # bad input or a damaged artifact: one line, no traceback
-        console.print(f"[red]stage {name} failed on {dataset}/{item}: {e}", soft_wrap=True)
+        # markup off: a "[...]" in the message (a path, a value) is text, not a style
+        console.print(f"stage {name} failed on {dataset}/{item}: {e}", style="red", markup=False, soft_wrap=True)
         raise typer.Exit(1) from None
     except Exception as e:
-        console.print(f"[red]stage {name} failed on {dataset}/{item}: {type(e).__name__}: {e}")
+        console.print(f"stage {name} failed on {dataset}/{item}: {type(e).__name__}: {e}", style="red", markup=False)
         raise
 
 
@@ -85,6 +86,7 @@ def encoders(
     from pipeline.encoders.registry import (EncoderSpec, WeightsNotFound, build_encoder, known_encoders, needs_weights,
                                             resolve_weights_dir)
     from pipeline.stand_in import paper_configuration, paper_fetch, paper_line
+    from pipeline.weights.formats import NotAWeightsFile
 
     wdir = resolve_weights_dir(weights_dir)
     rows = []
@@ -98,6 +100,8 @@ def encoders(
             weights = getattr(enc, "weights_path", None) or getattr(enc, "weights", None)
             row.update(dim=enc.dim, version=enc.version, signature=enc.signature(),
                        weights=f"found: {weights}" if needs_weights(man.encoder) else "none needed", ok=True)
+        except NotAWeightsFile as e:  # present, but a web page or a truncated download (a few bytes read)
+            row.update(weights=f"NOT A CHECKPOINT: {e.path}", error=str(e), ok=False)
         except WeightsNotFound as e:
             row.update(weights="MISSING, looked in: " + ", ".join(map(str, e.looked_in)), error=str(e), ok=False)
         except (FileNotFoundError, ValueError, ManifestError) as e:
@@ -118,6 +122,10 @@ def encoders(
                       str(r.get("dim", "-")), str(r.get("version", "-")), r.get("signature", "-"),
                       r["weights"] if r["ok"] else f"[red]{r['weights']}")
     Console(width=max(120, Console().width)).print(table)
+    for r in rows:  # the whole message once, on one line: which file, what it is, what to do
+        if str(r.get("weights", "")).startswith("NOT A CHECKPOINT"):
+            console.print(f"{r['manifest']}: {r['error']}", style="red", markup=False, highlight=False,
+                          soft_wrap=True)
     if paper_text:
         console.print(paper_text, markup=False, highlight=False, soft_wrap=True)
     console.print(f"weights folder: {wdir} (--weights-dir, $FREEZE_WEIGHTS, or <project>/weights)")
@@ -145,15 +153,29 @@ def plan(
     Console().print(table)
 
 
+def _positive_finite(value: Optional[float]) -> Optional[float]:
+    """typer callback: a finite number > 0 (or None, the default), as the dataset
+    manifests require of ``vsd_delta``; NaN, inf, 0 and negatives are refused."""
+    import math
+
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise typer.BadParameter(f"must be a finite number of mm > 0, got {value:g}")
+    return value
+
+
 @app.command()
 def score(
     results: Path = typer.Argument(..., exists=True, dir_okay=False, help="BOP results CSV"),
     dataset_root: Path = typer.Option(..., exists=True, file_okay=False, help="BOP dataset folder (camera.json, models_eval/, test/...)"),
     split: str = typer.Option("test"),
     targets: Optional[Path] = typer.Option(None, help="targets file (default <root>/test_targets_bop19.json)"),
-    out: Optional[Path] = typer.Option(None, help="write errors.parquet and scores.json here"),
+    out: Optional[Path] = typer.Option(None, help="folder to write errors.parquet and scores.json into (created if "
+                                                  "missing)"),
     workers: int = typer.Option(1, help="worker processes"),
-    vsd_delta: Optional[float] = typer.Option(None, help="VSD tolerance in mm [default: 5 for itodd, else 15]"),
+    vsd_delta: Optional[float] = typer.Option(None, callback=_positive_finite,
+                                              help="VSD tolerance in mm, a finite number > 0 [default: 5 for itodd, "
+                                                   "else 15]"),
+    progress: bool = typer.Option(True, help="show what is being done (a spinner per step, a bar over the images)"),
 ) -> None:
     """Score a BOP results CSV with the BOP19 metrics (VSD, MSSD, MSPD, AR).
 
@@ -164,20 +186,29 @@ def score(
     """
     from pipeline.bop.errors import BopFormatError
     from pipeline.metrics import score_results_file
+    from pipeline.progress import StepTimer
+    from pipeline.published_files import check_output_dir, error_line
+    from pipeline.store import StorageError
 
     try:
+        if out is not None:
+            check_output_dir(out, "--out")  # before the work, not after it
         s = score_results_file(results, dataset_root, split=split, targets_file=targets, out_dir=out,
-                               n_workers=workers, vsd_delta=vsd_delta)
+                               n_workers=workers, vsd_delta=vsd_delta, progress=progress,
+                               steps=StepTimer(enabled=progress, console=console))
     except BopFormatError as e:
         # soft_wrap: one line, the path kept whole for copying.
         console.print(f"[red]{e}", soft_wrap=True)
+        raise typer.Exit(1)
+    except StorageError as e:  # --out a file, a read-only or full disk: one line naming the path
+        console.print(error_line(e), style="red", markup=False, soft_wrap=True)
         raise typer.Exit(1)
     _print_scores({results.stem: s.summary})
     summ = s.summary
     console.print(f"{summ['n_estimates']} estimates: {summ['n_evaluated']} evaluated, {summ['n_ignored']} ignored "
                   f"(not a target), {summ['n_beyond_inst_count']} beyond inst_count")
     for note in summ.get("notes", []):
-        console.print(f"[yellow]{note}")
+        console.print(note, style="yellow", markup=False, soft_wrap=True)
 
 
 def _fmt(v) -> str:
@@ -201,7 +232,8 @@ def _print_scores(rows: dict[str, dict]) -> str:
 def _publish_csv(plan, folder: Path) -> Path:
     """Copy the dataset's results CSV into ``folder`` atomically (a temporary sibling
     renamed into place) with the mode the umask gives a new file (0644 under umask 022);
-    returns the copy."""
+    returns the copy. Raises :class:`pipeline.store.StorageError` naming the copy when it
+    cannot be written (a folder in its place, a full or read-only disk)."""
     from pipeline.published_files import write_text_published
 
     dst = folder / plan.results_csv_name
@@ -219,8 +251,17 @@ def ar_table(
 ) -> None:
     """Print the AR table of the run's datasets from their score artifacts."""
     from pipeline.plan import plan_from_json
-    from pipeline.store import DamagedArtifact, ensure_sound, read_manifest
+    from pipeline.published_files import check_output_dir, check_output_file, error_line
+    from pipeline.store import DamagedArtifact, StorageError, ensure_sound, read_manifest
 
+    try:  # a folder given as --out, a file as --csv-dir: said before anything is read or written
+        if out:
+            check_output_file(out, "--out")
+        if csv_dir:
+            check_output_dir(csv_dir, "--csv-dir")
+    except StorageError as e:
+        console.print(error_line(e), style="red", markup=False, soft_wrap=True)
+        raise typer.Exit(1)
     rp = plan_from_json(run_json, parse_overrides(config))
     rows = {}
     failed = False
@@ -242,7 +283,14 @@ def ar_table(
             failed = True
             continue
         if csv_dir:
-            _publish_csv(rp[ds], csv_dir)
+            try:
+                _publish_csv(rp[ds], csv_dir)
+            except StorageError as e:  # a full or read-only disk: one line naming the file
+                console.print(error_line(e), style="red", markup=False, soft_wrap=True)
+                failed = True
+            except FileNotFoundError as e:  # the results CSV of a refine artifact deleted by hand
+                console.print(f"{ds}: {e}", style="red", markup=False, soft_wrap=True)
+                failed = True
     md = _print_scores(rows)
     notes = [f"{ds}: {note}" for ds, s in rows.items() for note in s.get("notes") or []]
     for line in notes:
@@ -252,7 +300,11 @@ def ar_table(
     if out:
         from pipeline.published_files import write_text_published
 
-        write_text_published(out, md)  # atomic, mode 0o666 & ~umask
+        try:
+            write_text_published(out, md)  # atomic, mode 0o666 & ~umask
+        except StorageError as e:
+            console.print(error_line(e), style="red", markup=False, soft_wrap=True)
+            failed = True
     if failed:
         raise typer.Exit(1)
 
@@ -314,10 +366,11 @@ def datasets_check(
                                                     "RGB's and the camera's size, not all zero"),
 ) -> None:
     """Check every BOP dataset found under ROOT before a long run: the files and fields
-    each stage needs, every model file (readable PLY, faces, finite vertices, extent
-    matching models_info's diameter in mm), units, targets without images, the prior;
-    print a summary per dataset. Exits with 1 when a dataset has errors or when ROOT
-    holds no dataset."""
+    each stage needs, every model file (readable PLY, faces, finite vertices spanning a
+    surface, extent matching models_info's diameter in mm), units, the cameras (cam_K a
+    plausible pinhole matrix, depth_scale positive), the ground truth the scorer reads,
+    targets without images or listed twice, the prior; print a summary per dataset.
+    Exits with 1 when a dataset has errors or when ROOT holds no dataset."""
     from pipeline.datasets_check import check_root, no_dataset_message
 
     reports, absent = check_root(root, [p for p in prior.split(",") if p] if prior else None, deep=deep,

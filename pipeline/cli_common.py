@@ -44,7 +44,8 @@ def guard_commands(app: typer.Typer) -> None:
             try:
                 return callback(*args, **kwargs)
             except USER_ERRORS as e:
-                Console(stderr=True, highlight=False, soft_wrap=True).print(f"[red]error:[/] {e}", markup=True)
+                # markup off for the message: a "[...]" in it (a path, a value) is text, not a style
+                Console(stderr=True, highlight=False, soft_wrap=True).print(f"error: {e}", style="red", markup=False)
                 raise typer.Exit(1) from None
 
         run._guarded = True  # type: ignore[attr-defined]

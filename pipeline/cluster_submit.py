@@ -60,3 +60,34 @@ def profile_executor(profile: Path) -> tuple[str | None, str | None]:
     executor = cfg.get("executor")
     submit = cfg.get("cluster-generic-submit-cmd")
     return (str(executor) if executor else None), (str(submit) if submit else None)
+
+
+def profile_status_command(profile: Path) -> str | None:
+    """The cluster-generic status command of a profile as Snakemake reads it: a value
+    naming a file relative to the profile's folder becomes that file's path."""
+    cfg = yaml.safe_load((profile / "config.yaml").read_text()) or {}
+    value = cfg.get("cluster-generic-status-cmd") if isinstance(cfg, dict) else None
+    if not value:
+        return None
+    value = str(value)
+    return str(profile / value) if (profile / value).exists() else value
+
+
+def needs_quoting(command: str | None) -> bool:
+    """Whether ``command`` is the path of a file that the shell would split or read as
+    commands: the cluster-generic executor runs its status command as
+    ``{statuscmd} '{jobid}'`` in a shell, unquoted, so a clone under ``/home/me/my work``
+    fails every status query, and a ``;`` in the path runs what follows it."""
+    return bool(command) and shlex.quote(command) != command and Path(command).is_file()
+
+
+def unquoted_status_command(executor: str | None, status_cmd: str | None) -> str | None:
+    """One line saying why the cluster-generic status command cannot be run as given (see
+    :func:`needs_quoting`), or None. ``freeze run --profile`` passes the quoted path
+    instead; a plain ``snakemake --profile`` stops with this line (the Snakefile's
+    ``onstart``)."""
+    if executor != "cluster-generic" or not needs_quoting(status_cmd):
+        return None
+    return (f"the cluster-generic status command {status_cmd} is a path holding characters that the shell splits "
+            "or runs (the executor calls it unquoted): run `freeze run --profile DIR`, which quotes it, or give "
+            "snakemake --cluster-generic-status-cmd with the path inside quotes")

@@ -47,7 +47,10 @@ class ManifestError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: `.inf` or `nan` for any number of any manifest (or of
+    # --config) is refused with the field's name; accepted, it reached json.dumps of the
+    # cache key as a ValueError traceback, or a stage as silent nonsense.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # ------------------------------------------------------------------ stage parameters
@@ -226,6 +229,20 @@ class WeightDownload(_Strict):
     source: Literal["official", "hf"] = Field(
         "official", description="official: the project's own release; hf: the Hugging Face copy (--source hf)")
     size: int | None = Field(None, ge=0, description="approximate size in bytes, for `freeze weights list`")
+    exact_size: int | None = Field(None, ge=0, description="exact size in bytes of what `url` serves (the archive, "
+                                                           "for a zip): a download of another size is refused (null: "
+                                                           "not known; Content-Length and the format check apply)")
+
+    @field_validator("url")
+    @classmethod
+    def _http_only(cls, value: str) -> str:
+        # file:// would copy any local file into the weights folder as if downloaded (pipeline.weights.fetch)
+        from urllib.parse import urlsplit
+
+        parts = urlsplit(value)
+        if parts.scheme.lower() not in ("http", "https") or not parts.netloc:
+            raise ValueError("must be an http(s) URL with a host (file:// and other schemes are not fetched)")
+        return value
 
 
 class DatasetManifest(_Strict):
@@ -376,21 +393,47 @@ def _read_yaml(path: Path) -> dict[str, Any]:
         with open(path) as f:
             data = yaml.safe_load(f)
     except yaml.YAMLError as e:
-        raise ManifestError(f"{path}: not valid YAML: {e}") from e
+        raise ManifestError(f"{path}: not valid YAML: {_yaml_reason(e)}") from None
     if not isinstance(data, dict):
         raise ManifestError(f"{path}: expected a mapping at the top level")
     return data
 
 
-def _validate(model: type[BaseModel], data: Mapping[str, Any], source: str):
+def _shown(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` on one line, cut to about ``limit`` characters (for messages)."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _yaml_reason(e: yaml.YAMLError) -> str:
+    """PyYAML's error on one line: what is wrong and where (line, column; 1-based)."""
+    mark = getattr(e, "problem_mark", None)
+    problem = getattr(e, "problem", None)
+    if problem is None:
+        return " ".join(str(e).split())
+    context = getattr(e, "context", None)
+    where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+    return f"{context + ': ' if context else ''}{problem}{where}"
+
+
+def _validate(model: type[BaseModel], data: Mapping[str, Any], source: str,
+              origins: Mapping[tuple[str, ...], str] | None = None):
+    """``model`` validated from ``data``, else ``ManifestError`` on one line: per bad
+    field, where it came from (``source``, the manifest file, or the ``origins`` entry of
+    the field or of a mapping above it: the ``--config key=value`` that set it), the
+    field, what is expected and the value given."""
     try:
         return model.model_validate(dict(data))
     except ValidationError as e:
-        lines = []
+        parts = []
         for err in e.errors():
-            loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-            lines.append(f"  field '{loc}': {err['msg']}")
-        raise ManifestError(f"{source}: invalid manifest\n" + "\n".join(lines)) from None
+            loc = tuple(str(p) for p in err["loc"])
+            where = next((origins[loc[:n]] for n in range(len(loc), 0, -1) if origins and loc[:n] in origins), source)
+            value = err.get("input")
+            got = f", got {_shown(value)}" if loc and isinstance(value, (str, int, float, bool, type(None))) else ""
+            field = ".".join(loc) or "(top level)"
+            parts.append(f"{where}: field '{field}': {err['msg']}{got}")
+        raise ManifestError("; ".join(parts)) from None
 
 
 def encoder_manifest_names(manifest_dir: Path = MANIFEST_DIR) -> list[str]:
@@ -505,6 +548,12 @@ def _refuse_unknown_keys(config: Mapping[str, Any]) -> None:
     unknown = [k for k in config if k not in known]
     if not unknown:
         return
+    stage_param = next((k for k in unknown if "." in str(k) and str(k).split(".")[0] in (*StageParams.model_fields,
+                                                                                         "stages")), None)
+    if stage_param is not None:  # a stage parameter where only flat keys go (what freeze estimate's -c takes)
+        raise ManifestError(f"config: '{stage_param}' is a stage parameter: only `freeze estimate -c` takes those; a "
+                            "run, plan or stage reads them from a run manifest: run=FILE, whose 'extends:' names "
+                            "manifests/runs/default.yaml (relative to FILE), with the parameter under 'stages:'")
     hints = []
     for k in unknown:
         close = difflib.get_close_matches(str(k), known, n=1, cutoff=0.6)
@@ -529,6 +578,9 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
     if not run_path.is_absolute() and not run_path.exists():
         run_path = PROJECT_ROOT / run_path
     data = _read_run_yaml(run_path)
+    # a bad value given with --config is named as given there, not as the manifest's
+    origins = {(_ALIASES.get(k, k),): f"--config {k}={_shown(v)[1:-1] if isinstance(v, str) else _shown(v)}"
+               for k, v in config.items()}
     for alias, key in _ALIASES.items():
         if alias in config:
             if config.get(key) not in (None, config[alias]):
@@ -551,7 +603,7 @@ def load_run(config: Mapping[str, Any] | None = None, path: Path | None = None) 
         data["bop_root"] = os.environ["BOP_ROOT"]  # the one setting, from the environment
     if data.get("bop_root"):
         data["bop_root"] = str(Path(data["bop_root"]).expanduser().resolve())
-    return _validate(RunManifest, data, str(run_path))
+    return _validate(RunManifest, data, str(run_path), origins)
 
 
 def load_run_with_overrides(overrides: Mapping[str, Any] | None = None) -> RunManifest:
@@ -569,6 +621,7 @@ def load_run_with_overrides(overrides: Mapping[str, Any] | None = None) -> RunMa
     if not dotted:
         return run
     data = run.model_dump()
+    origins: dict[tuple[str, ...], str] = {}
     for k, v in dotted.items():
         path = k.split(".")
         if path[0] != "stages":
@@ -580,5 +633,32 @@ def load_run_with_overrides(overrides: Mapping[str, Any] | None = None) -> RunMa
             node = node[p]
         if path[-1] not in node:
             raise ManifestError(f"--config {k}: unknown parameter '{path[-1]}' (known: {', '.join(node)})")
-        node[path[-1]] = yaml.safe_load(v) if isinstance(v, str) else v
-    return _validate(RunManifest, data, "--config")
+        node[path[-1]] = _override_value(k, v)
+        origins[tuple(path)] = f"--config {k}={v}"
+    return _validate(RunManifest, data, "--config", origins)
+
+
+def _override_value(key: str, value: Any) -> Any:
+    """The value of a ``--config key=value`` stage parameter: a string is read as one
+    YAML value (``20000``, ``true``, ``[1, 2]``), with PyYAML's safe loader, so that
+    ``!!python/...`` tags construct nothing. Malformed YAML or a tag is ``ManifestError``
+    naming the key and the value; the field's own type is checked by the schema after."""
+    if not isinstance(value, str):
+        return value
+    try:
+        return yaml.safe_load(value)
+    except yaml.constructor.ConstructorError as e:
+        tag = f" ({e.problem.split('tag ')[-1]})" if e.problem and "tag " in e.problem else ""
+        raise ManifestError(f"--config {key}={_shown(value)[1:-1]}: YAML tags{tag} are not accepted; give a plain "
+                            f"{_PLAIN}") from None
+    except yaml.YAMLError as e:
+        reason = " ".join(str(getattr(e, "problem", None) or e).split())
+        raise ManifestError(f"--config {key}={_shown(value)[1:-1]}: not a YAML value ({reason}); give a plain "
+                            f"{_PLAIN}") from None
+    except (ValueError, RecursionError):  # an int beyond Python's digit limit; nesting deeper than the parser
+        raise ManifestError(f"--config {key}={_shown(value)[1:-1]}: not a value this parser reads; give a plain "
+                            f"{_PLAIN}") from None
+
+
+_PLAIN = "number, true/false, a string or a list such as [1, 2]"
+"""What a --config value may be (no "[word": rich would take it for markup where printed)."""

@@ -10,14 +10,19 @@ plain findings naming the file and the field:
   image and a depth image per target image;
 - what the manifest says of the dataset as BOP distributes it: the object ids, the
   image folder and extension (ITODD ``gray/*.tif``) and the image size;
-- units: diameters present, positive and in mm (a diameter below 5 looks like metres),
-  depth_scale present and positive;
+- units: diameters present, positive and in mm (a diameter below 5 looks like metres);
 - every model file (the manifest's model folder and ``models_eval``), opened through
   the pipeline's own reader (:meth:`pipeline.bop.BopDataset.load_model`): unreadable or
   corrupt PLYs, meshes without faces, NaN/inf vertices, and vertices whose extent
   disagrees with models_info's diameter (a model in metres beside a diameter in mm);
-- targets whose image is missing; targets of objects without a model; scenes without
-  ground truth (expected where it is private: ITODD, HB);
+- the cameras of every target scene by the reader's rule (the stages refuse the same):
+  ``cam_K`` a plausible pinhole matrix (:func:`pipeline.bop.dataset.intrinsics_problem`),
+  ``depth_scale`` positive;
+- targets whose image is missing; targets of objects without a model; targets listed
+  twice (a warning; counted once, as the scorer does); scenes without ground truth
+  (expected where it is private: ITODD, HB); the ground truth the scorer will read
+  (:meth:`pipeline.bop.BopDataset.ground_truth_problems`: finite poses, an entry per
+  target image in scene_gt.json and scene_gt_info.json);
 - each prior file: found, parseable, category ids that are the dataset's objects (or
   look like 0-/1-based indices: see ``segment_prior.category_ids``), detections for
   objects not in models_info and targets without any detection.
@@ -44,7 +49,7 @@ from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 
-from pipeline.bop.dataset import MIN_DIAMETER_MM
+from pipeline.bop.dataset import MIN_DIAMETER_MM, intrinsics_problem
 
 EXTENT_TOLERANCE = 1.25
 """How far a model's vertices may stray from models_info's diameter before it is
@@ -116,6 +121,7 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None, *, 
     except (ValueError, OSError) as e:  # BopFormatError is a ValueError
         rep.errors.append(str(e))
         return rep
+    targets = _unique_targets(rep, root / manifest.targets_file, targets)
     diameters = _diameters(rep, bop)
     if diameters is None:
         return rep
@@ -129,6 +135,8 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None, *, 
     if gt_missing and manifest.public_gt:
         rep.warnings.append(f"{gt_missing[0]}: not found ({len(gt_missing)} of "
                             f"{len(scenes)} target scenes lack ground truth): estimates will be made, but no AR")
+    if manifest.public_gt:  # what the score stage reads (and segment_prior refuses at the start of a run)
+        rep.errors.extend(bop.ground_truth_problems(targets))
     n_detections = _check_priors(rep, Path(bop_root), manifest, priors, diameters, targets)
     per_target = Counter(t.inst_count for t in targets)
     rep.summary = {
@@ -140,6 +148,28 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None, *, 
         "ground_truth": not gt_missing,
     }
     return rep
+
+
+def _unique_targets(rep: DatasetReport, path: Path, targets: list) -> list:
+    """``targets`` with each (scene, image, object) once, the last line's inst_count
+    kept, as the scorer and BOP's toolkit read the file (both key the targets by
+    scene, image and object, so a repeated line counts once and the later one wins);
+    one warning with the number of repeated lines and the first of them."""
+    unique: dict[tuple[int, int, int], Any] = {}
+    repeated = []
+    for t in targets:
+        key = (t.scene_id, t.im_id, t.obj_id)
+        if key in unique:
+            repeated.append(t)
+        unique[key] = t
+    if repeated:
+        t = repeated[0]
+        counts = {u.inst_count for u in targets if (u.scene_id, u.im_id, u.obj_id) == (t.scene_id, t.im_id, t.obj_id)}
+        differ = f", with inst_count {' and '.join(map(str, sorted(counts)))}" if len(counts) > 1 else ""
+        rep.warnings.append(f"{path}: {len(repeated)} repeated target line{'s' if len(repeated) > 1 else ''} (first: "
+                            f"scene {t.scene_id}, image {t.im_id}, object {t.obj_id}{differ}); each target is counted "
+                            "once, with its last line's inst_count, as the scorer and BOP's toolkit read it")
+    return list(unique.values())
 
 
 def _diameters(rep: DatasetReport, bop) -> dict[int, float | None] | None:
@@ -363,20 +393,23 @@ def _check_images(rep: DatasetReport, bop, manifest, images: list[tuple[int, int
     sizes: set[tuple[int, int]] = set()
     for scene_id in sorted({s for s, _ in images}):
         try:
-            cams = bop.scene_camera(scene_id)
+            cams = bop.scene_camera(scene_id, check=False)
         except (ValueError, OSError) as e:
             rep.errors.append(str(e))
             continue
+        # the reader's own rule (what the stages refuse): every entry, not only the targets'
+        rep.errors.extend(bop.camera_problems(scene_id))
         first = True
         for s, im_id in images:
             if s != scene_id:
                 continue
             problems = []
+            bad_camera = False  # reported above, once per scene and field; counted per image here
             if im_id not in cams:
                 problems.append(f"{bop.scene_dir(scene_id) / 'scene_camera.json'}: no entry for image {im_id}")
-            elif not cams[im_id].depth_scale or cams[im_id].depth_scale <= 0:
-                problems.append(f"{bop.scene_dir(scene_id) / 'scene_camera.json'}: image {im_id}: field "
-                                f"'depth_scale' must be positive, got {cams[im_id].depth_scale}")
+            else:
+                cam = cams[im_id]
+                bad_camera = cam.depth_scale <= 0 or intrinsics_problem(cam.K, cam.width, cam.height) is not None
             try:
                 path = bop.rgb_path(scene_id, im_id)
             except ValueError as e:
@@ -394,7 +427,7 @@ def _check_images(rep: DatasetReport, bop, manifest, images: list[tuple[int, int
                                             f"images are {manifest.image_size[0]}x{manifest.image_size[1]} (field 'image_size')")
             if not bop.has_depth(scene_id, im_id):
                 problems.append(f"{bop.scene_dir(scene_id)}: no depth/ image for target image {im_id}")
-            if problems:
+            if problems or bad_camera:
                 missing_images += 1
                 rep.errors.extend(problems)
     return missing_images, sizes

@@ -136,7 +136,11 @@ def estimate(
     a model in metres). out_dir: where to write ``pose.json``, ``overlay.png``,
     ``points.png``, a copy of the stages' artifacts, and the frame as the BOP dataset
     ``<out_dir>/bop/<bop_name>`` with ``<out_dir>/bop/<bop_name>.yaml`` (a temporary
-    folder when None; nothing is kept then but the cache). bop_name: default
+    folder when None; nothing is kept then but the cache). out_dir is written only as
+    :mod:`pipeline.estimate.output` allows: new, empty, or marked by an earlier estimate
+    (``.freeze-estimate.json``), whose listed files alone are replaced; it is claimed
+    before any stage runs and filled from a staging folder once the run is complete,
+    so an error leaves it as it was. bop_name: default
     :func:`pipeline.bop.wrap.default_name` of the model file. overrides: run-manifest
     overrides (:func:`pipeline.config.load_run_with_overrides`). geometric, visual:
     encoder manifest names, device: ``auto``, ``cpu`` or ``cuda`` (the same as the
@@ -150,8 +154,9 @@ def estimate(
     from pipeline.bop import wrap
     from pipeline.config import load_run_with_overrides
     from pipeline.estimate.frame import write_frame_dataset
-    from pipeline.estimate.inputs import (load_camera, load_depth, load_mask, load_model, load_rgb_and_mode,
-                                          parse_bbox, scale_warning)
+    from pipeline.estimate.inputs import (check_intrinsics, check_prior_size, load_camera, load_depth, load_mask,
+                                          load_model, load_rgb_and_mode, parse_bbox, scale_warning)
+    from pipeline.estimate.output import claim
     from pipeline.geometry.box_points import box_candidate_points
     from pipeline.geometry.crops import mask_to_bbox
     from pipeline.plan import build_encoders
@@ -187,6 +192,7 @@ def estimate(
             raise EstimateError(f"{depth}: depth is {depth_im.shape[1]}x{depth_im.shape[0]} px but {rgb} is "
                                 f"{rgb_im.shape[1]}x{rgb_im.shape[0]}")
         H, W = depth_im.shape
+        check_intrinsics(cam, W, H)
         mask_im = load_mask(mask, (H, W)) if mask is not None else None
         if bbox is not None:
             box = parse_bbox(bbox)
@@ -215,16 +221,29 @@ def estimate(
         prior_details = sel.details
     else:
         prior_details = {"mask_pixels": int(mask_im.sum()), "valid_depth": int((mask_im & (depth_im > 0)).sum())}
+    # the prior's mask as segment_prior will read it (wrap_frame's rule): refused now, before
+    # any stage runs, when segment_prior or scene_features would drop it
+    prior_mask = mask_im if mask_im is not None else wrap.box_mask(box, (H, W)) & kept
+    check_prior_size(prior_mask, depth_im, cam.K, diameter, min_area=run.stages.segment_prior.min_area,
+                     min_points=run.stages.scene_features.min_points,
+                     what=f"--mask {mask}" if mask is not None else f"--bbox {','.join(f'{v:g}' for v in box)}")
 
-    work = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="freeze-estimate-"))
+    # --out: checked and claimed before any stage runs; the run writes to a staging folder
+    # in it, moved into place once complete (pipeline.estimate.output)
+    folder = claim(out_dir) if out_dir is not None else None
+    work = folder.staging if folder is not None else Path(tempfile.mkdtemp(prefix="freeze-estimate-"))
+    committed = False
     try:
         with steps("write the frame as a BOP dataset"):
             try:
                 frame = write_frame_dataset(work / "bop", bop_name, rgb=rgb_im, depth_mm=depth_im, K=cam.K,
                                             model_path=Path(model), model_scale=model_scale, mask=mask_im,
-                                            bbox=box, kept_mask=kept, image_mode=image_mode)
+                                            bbox=box, kept_mask=kept, image_mode=image_mode,
+                                            final_root=folder.out / "bop" if folder is not None else None)
             except ValueError as e:
-                raise EstimateError(f"writing the BOP dataset {work / 'bop' / bop_name}: {e}") from None
+                raise EstimateError(f"writing the BOP dataset {bop_name}: {e}") from None
+            except OSError as e:
+                raise _write_failure(folder, work, e) from None
         rp = frame_run_plan(run, frame, Path(cache) if cache else None)
         plan = rp[frame.root.name]
         for note in rp.notes(frame.root.name):
@@ -232,23 +251,55 @@ def estimate(
         obj, scene = frame.obj_item(), frame.scene_item()
         reused = run_stages(plan, [(s, obj) for s in MODEL_STAGES], steps)
         run_stages(plan, [(s, "all" if s == "segment_prior" else scene) for s in SCENE_STAGES], steps)
-        return _finish(plan, frame, work if out_dir is not None else None, run=run, mesh=mesh, diameter=diameter,
-                       rgb=rgb_im, K=cam.K, box=box, steps=steps, model_cache_reused=all(reused.values()),
-                       prior_details=prior_details,
-                       inputs={"model": str(Path(model).resolve()), "rgb": str(Path(rgb).resolve()),
-                               "depth": str(Path(depth).resolve()), "camera": str(Path(camera).resolve()),
-                               "mask": str(Path(mask).resolve()) if mask is not None else None,
-                               "prior": "mask" if mask is not None else "bbox", "bbox": [float(v) for v in box],
-                               "depth_scale": scale, "depth_scale_from": scale_src, "model_scale": model_scale,
-                               "camera_form": cam.form, "K": cam.K.tolist(), "image_size": [W, H],
-                               "image_mode": image_mode, "grey_because": grey_why},
-                       encoders={"geometric": run.geometric_encoder, "visual": run.visual_encoder,
-                                 "signatures": {"geometric": geo.signature(), "visual": vis.signature()},
-                                 "device": run.device},
-                       note=encoders_sentence(run.geometric_encoder, run.visual_encoder, form="estimate"))
+        try:
+            res = _finish(plan, frame, work if out_dir is not None else None, run=run, mesh=mesh, diameter=diameter,
+                           rgb=rgb_im, K=cam.K, box=box, steps=steps, model_cache_reused=all(reused.values()),
+                           prior_details=prior_details,
+                           inputs={"model": str(Path(model).resolve()), "rgb": str(Path(rgb).resolve()),
+                                   "depth": str(Path(depth).resolve()), "camera": str(Path(camera).resolve()),
+                                   "mask": str(Path(mask).resolve()) if mask is not None else None,
+                                   "prior": "mask" if mask is not None else "bbox", "bbox": [float(v) for v in box],
+                                   "depth_scale": scale, "depth_scale_from": scale_src, "model_scale": model_scale,
+                                   "camera_form": cam.form, "K": cam.K.tolist(), "image_size": [W, H],
+                                   "image_mode": image_mode, "grey_because": grey_why},
+                           encoders={"geometric": run.geometric_encoder, "visual": run.visual_encoder,
+                                     "signatures": {"geometric": geo.signature(), "visual": vis.signature()},
+                                     "device": run.device},
+                           note=encoders_sentence(run.geometric_encoder, run.visual_encoder, form="estimate"))
+        except _WriteFailed as w:
+            raise _write_failure(folder, work, w.error) from None
+        if folder is None:
+            return res
+        folder.commit()
+        committed = True
+        res.out_dir = folder.out
+        res.files = {k: folder.final(v) for k, v in res.files.items()}
+        return res
     finally:
-        if out_dir is None:
+        if folder is None:
             shutil.rmtree(work, ignore_errors=True)
+        elif not committed:  # an error, or an interruption: nothing half-written stays in --out
+            folder.abort()
+
+
+def _write_failure(folder, work: Path, e: OSError) -> EstimateError:
+    """The one line for an OSError while writing the outputs into ``work`` (the staging
+    folder of ``folder``, or a temporary folder when None): the file (at its final
+    place) and why."""
+    from pipeline.estimate.output import why
+
+    from pipeline.store import StorageError
+
+    name = getattr(e, "filename", None)
+    if not name and isinstance(e, StorageError):  # its message starts with the path it was writing
+        name = (e.strerror or "").split(": cannot write", 1)[0] or None
+    target = Path(name) if name else None
+    if folder is not None:
+        if target is not None and work in target.parents:
+            target = folder.final(target)
+        return EstimateError(f"--out {folder.out}: cannot write {target or 'the outputs'} ({why(e)}); the folder is left "
+                             "as it was before the run")
+    return EstimateError(f"{target or work}: cannot write it ({why(e)})")
 
 
 def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: np.ndarray, K: np.ndarray, box,
@@ -256,13 +307,10 @@ def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: n
             note: str) -> EstimateResult:
     """Read the estimate back from the artifacts; write pose.json, the pictures and the
     artifacts' copies to ``out``. ``note``: which encoders ran, in one sentence
-    (:func:`pipeline.stand_in.encoders_sentence`)."""
-    from pipeline.bop.dataset import save_rgb
-    from pipeline.estimate.frame import IM_ID, SCENE_ID
+    (:func:`pipeline.stand_in.encoders_sentence`). OSErrors while writing come out as
+    :class:`_WriteFailed` (told from errors reading the artifacts)."""
     from pipeline.estimate.record import candidate_record, dumps, jsonable
-    from pipeline.report.overlay import points_picture, render_overlay
-    from pipeline.scene_side import candidate_points
-    from pipeline.store import atomic_write_text, load_arrays
+    from pipeline.store import atomic_write_text
 
     rec = candidate_record(plan, frame)
     R, t = rec.pop("R"), rec.pop("t")
@@ -285,33 +333,58 @@ def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: n
         "units": "R: model-to-camera rotation; t: mm (OpenCV camera, BOP convention)",
     }
     files: dict[str, Path] = {}
-    if out is not None:
-        with steps("write outputs"):
-            caption = (f"evidence {record['evidence']:.3f}  inliers {record['n_inliers']}  "
-                       f"ICP fitness {record['fitness']:.2f}"
-                       + (f"  SAR variant {record['sar_variant']}" if record["sar_variant"] >= 0 else ""))
-            files["overlay"] = out / "overlay.png"
-            save_rgb(files["overlay"], render_overlay(mesh, R, t, K, rgb, box, caption))
-            # the picture of the points: the candidate's object points, as scene_features lifts them
-            depth = plan.bop().load_depth(SCENE_ID, IM_ID)
-            mask = plan_prior_mask(plan, frame)
-            kept_pixels = candidate_points(depth, K, mask, diameter)[1]
-            feats = load_arrays(artifacts["scene_features"] / "features.zarr", ["pixels", "n_points"])
-            files["points"] = out / "points.png"
-            save_rgb(files["points"], points_picture(rgb, kept_pixels, feats["pixels"][0, :int(feats["n_points"][0])], box))
-            for stage, folder in artifacts.items():
-                copy = out / stage
-                shutil.rmtree(copy, ignore_errors=True)
-                shutil.copytree(folder, copy)
-                files[stage] = copy
-            files["bop"], files["bop_manifest"], files["bop_prior"] = frame.root, frame.manifest, frame.prior
-    record["timings_s"] = {k: round(v, 3) for k, v in steps.timings.items()}
-    record = jsonable(record)
-    if out is not None:
-        files["pose"] = out / "pose.json"
-        atomic_write_text(files["pose"], dumps(record))
+    try:
+        if out is not None:
+            _write_outputs(out, files, plan, frame, artifacts, record, mesh=mesh, R=R, t=t, K=K, rgb=rgb, box=box,
+                           diameter=diameter, steps=steps)
+        record["timings_s"] = {k: round(v, 3) for k, v in steps.timings.items()}
+        record = jsonable(record)
+        if out is not None:
+            files["pose"] = out / "pose.json"
+            atomic_write_text(files["pose"], dumps(record))
+    except OSError as e:
+        raise _WriteFailed(e) from None
     return EstimateResult(R=R, t=t, evidence=float(record["evidence"]), record=record, out_dir=out, files=files,
                           model_cache_reused=model_cache_reused, timings=dict(steps.timings), artifacts=artifacts)
+
+
+class _WriteFailed(Exception):
+    """An OSError while writing the outputs (``error``), told from one while reading the artifacts."""
+
+    def __init__(self, error: OSError):
+        super().__init__(str(error))
+        self.error = error
+
+
+def _write_outputs(out: Path, files: dict[str, Path], plan, frame, artifacts: dict[str, Path], record: dict, *,
+                   mesh, R: np.ndarray, t: np.ndarray, K: np.ndarray, rgb: np.ndarray, box, diameter: float,
+                   steps) -> None:
+    """Write overlay.png, points.png and the stages' copies into ``out`` (the staging
+    folder), filling ``files`` (name -> path)."""
+    from pipeline.bop.dataset import save_rgb
+    from pipeline.estimate.frame import IM_ID, SCENE_ID
+    from pipeline.report.overlay import points_picture, render_overlay
+    from pipeline.scene_side import candidate_points
+    from pipeline.store import load_arrays
+
+    with steps("write outputs"):
+        caption = (f"evidence {record['evidence']:.3f}  inliers {record['n_inliers']}  "
+                   f"ICP fitness {record['fitness']:.2f}"
+                   + (f"  SAR variant {record['sar_variant']}" if record["sar_variant"] >= 0 else ""))
+        files["overlay"] = out / "overlay.png"
+        save_rgb(files["overlay"], render_overlay(mesh, R, t, K, rgb, box, caption))
+        # the picture of the points: the candidate's object points, as scene_features lifts them
+        depth = plan.bop().load_depth(SCENE_ID, IM_ID)
+        mask = plan_prior_mask(plan, frame)
+        kept_pixels = candidate_points(depth, K, mask, diameter)[1]
+        feats = load_arrays(artifacts["scene_features"] / "features.zarr", ["pixels", "n_points"])
+        files["points"] = out / "points.png"
+        save_rgb(files["points"], points_picture(rgb, kept_pixels, feats["pixels"][0, :int(feats["n_points"][0])], box))
+        for stage, folder in artifacts.items():
+            copy = out / stage  # out is this run's fresh staging folder: nothing there to replace
+            shutil.copytree(folder, copy)
+            files[stage] = copy
+        files["bop"], files["bop_manifest"], files["bop_prior"] = frame.root, frame.manifest, frame.prior
 
 
 def plan_prior_mask(plan, frame) -> np.ndarray:
@@ -349,7 +422,10 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
                                                                                 "camera file's depth_scale, else 1)"),
         model_scale: float = typer.Option(1.0, "--model-scale", help="multiply the model's coordinates (1000 for "
                                                                      "a model in metres)"),
-        out: Path = typer.Option(Path("estimate_out"), "--out", help="output folder"),
+        out: Path = typer.Option(Path("estimate_out"), "--out", help="output folder: a new or empty one, or one an "
+                                 "earlier estimate wrote (marked by OUT/.freeze-estimate.json, which lists its files; "
+                                 "a rerun replaces only those). A folder holding anything else is refused, naming "
+                                 "the file: the estimate never deletes what it did not write"),
         bop_name: Optional[str] = typer.Option(None, "--bop-name", help="name of the one-image BOP dataset written to "
                                                "OUT/bop/NAME, lowercase letters and digits (default: the model "
                                                "file's name reduced to them: obj_000005.ply -> obj000005)"),
@@ -386,13 +462,25 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         (the depth points used) and a copy of every stage's artifact (OUT/render_templates,
         ..., OUT/refine). The same result comes from `snakemake --cores 2 bop_all
         --config bop_root=OUT/bop datasets=OUT/bop/NAME.yaml` (not scored: no ground truth).
+
+        OUT is the estimate's own: it writes OUT/.freeze-estimate.json listing every file
+        it wrote (size, SHA-256), and a rerun into OUT replaces only what that lists.
+        A non-empty OUT without it, or a file in the way of the outputs that it does not
+        list or that changed since, is refused before any stage runs, naming the file;
+        other entries beside the outputs are left alone. Everything is written to a
+        staging folder inside OUT first and moved into place once complete: a failed
+        run (a full or read-only disk, a stage's error) leaves OUT as it was.
+
+        Inputs are checked before any stage runs: the camera (positive, sane focal
+        lengths and a principal point near the image), and the prior (its mask at least
+        segment_prior.min_area pixels, with at least scene_features.min_points depth
+        points); each refusal is one line naming the file or option and the field.
         """
         from rich.console import Console
         from rich.markup import escape
 
-        from pipeline.bop.errors import BopFormatError
-        from pipeline.cli_common import parse_overrides
-        from pipeline.config import ManifestError
+        from pipeline.cli_common import USER_ERRORS, parse_overrides
+        from pipeline.estimate.frame import pipeline_command
 
         console = Console(stderr=True)
         console.print(f"[bold]freeze estimate[/] {escape(model.name)} in {escape(rgb.name)} -> {escape(str(out))}")
@@ -401,7 +489,7 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
                            model_scale=model_scale, out_dir=out, bop_name=bop_name, overrides=parse_overrides(config),
                            geometric=geometric, visual=visual, device=device.value if device else None,
                            progress=progress, console=console)
-        except (EstimateError, ManifestError, BopFormatError) as e:
+        except (EstimateError, *USER_ERRORS) as e:
             # one line, whatever the terminal's width: the message names the file to fix
             console.print(f"[red]error:[/] {escape(str(e))}", soft_wrap=True)
             raise typer.Exit(1)
@@ -421,6 +509,7 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         for name, path in res.files.items():
             console.print(f"  {name:<16} {path}", soft_wrap=True, markup=False, highlight=False)
         ds = res.files["bop"]
-        console.print(f"BOP dataset (1 image, no ground truth): {ds}; load it with pipeline.bop.BopDataset(\"{ds}\"), "
-                      f"or run the pipeline on it: snakemake --cores 2 bop_all --config bop_root={ds.parent} "
-                      f"datasets={res.files['bop_manifest']}", soft_wrap=True, markup=False, highlight=False)
+        # quoted (shlex): the command pastes whole into a shell whatever the paths hold
+        console.print(f"BOP dataset (1 image, no ground truth): {ds}; load it with pipeline.bop.BopDataset({str(ds)!r}), "
+                      f"or run the pipeline on it: {pipeline_command(ds.parent, res.files['bop_manifest'])}",
+                      soft_wrap=True, markup=False, highlight=False)

@@ -218,31 +218,47 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
     ) -> None:
         """Check every artifact of a cache against its manifest: each file's size and SHA-256 as recorded when it was
         published. Lists damaged items (a file missing, truncated or altered; an unreadable manifest) and leftovers
-        of killed runs. Exits 1 when it finds damage, unless --repair removed it."""
-        from pipeline.cache_verify import count_items, verify_cache
+        of killed runs. An artifact is a folder with its own _manifest.json, at any depth (freeze estimate's too);
+        --repair removes damaged ones and leftovers and nothing else: what is not an artifact, and symbolic links,
+        are listed as left alone. Exits 1 when it finds damage, unless --repair removed it."""
+        from pipeline.cache_verify import scan_cache, verify_cache
         from pipeline.plan import cache_root
         from pipeline.progress import progress_bar
 
         root = Path(cache) if cache else cache_root()
         if not root.is_dir():
-            _err().print(f"[red]{root}: no cache folder")
+            _err().print(f"[red]{escape(str(root))}: no cache folder")
             raise typer.Exit(1)
-        with progress_bar(f"verify {root}", total=count_items(root, dataset), enabled=progress) as bar:
+        scan = scan_cache(root, dataset)
+        with progress_bar(f"verify {root}", total=len(scan.artifacts), enabled=progress) as bar:
             report = verify_cache(root, dataset, checksums=not quick, repair=repair,
-                                  leftover_min_age_s=tmp_min_age * 60, advance=bar.advance)
+                                  leftover_min_age_s=tmp_min_age * 60, advance=bar.advance, scan=scan)
         out = _err()
         for item, problems in report.damaged.items():
             for line in problems:
                 out.print(f"[red]damaged: {escape(line)}")
         for p in report.leftovers:
             out.print(f"[yellow]leftover of a killed run: {escape(str(p))}")
+        shown = 20  # a user's folder of thousands of files is one line already; links are listed each
+        for p, why in report.left_alone[:shown]:
+            out.print(f"left alone: {escape(str(p))} ({escape(why)})")
+        if len(report.left_alone) > shown:
+            out.print(f"left alone: {len(report.left_alone) - shown} more paths that are not artifacts")
+        if report.young_leftovers:
+            out.print(f"left alone: {len(report.young_leftovers)} leftover(s) younger than {tmp_min_age:g} min (a "
+                      f"running job's, perhaps), e.g. {escape(str(report.young_leftovers[0]))}")
         what = "sizes" if quick else "sizes and checksums"
         out.print(f"{report.checked} artifact items checked ({what}): {len(report.damaged)} damaged, "
-                  f"{len(report.leftovers)} leftovers")
+                  f"{len(report.leftovers)} leftovers; {len(report.left_alone)} paths left alone (not artifacts)")
+        for line in report.errors:
+            out.print(f"[red]error: {escape(line)}")
+        if report.errors:
+            raise typer.Exit(1)
         if repair and report.removed:
             out.print(f"removed {len(report.removed)}; the next run rebuilds the damaged items")
-        elif not report.ok:
-            out.print("run `freeze verify --repair` to remove them; the next run rebuilds the damaged items")
+        if not report.ok:
+            out.print("some were not removed (see 'left alone' above)" if repair else
+                      "run `freeze verify --repair` to remove them; the next run rebuilds the damaged items")
             raise typer.Exit(1)
 
     @app.command("inspect")

@@ -27,6 +27,7 @@ Which mapper:
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -51,6 +52,20 @@ S = TypeVar("S")
 class SchedulerUnreachable(ManifestError):
     """The dask scheduler the run names could not be reached. A :class:`ManifestError`
     (the option's value is unusable), so commands print its one line and exit 1."""
+
+
+class SchedulerLost(SchedulerUnreachable):
+    """The dask scheduler (or the connection to it) went away while a job's tasks ran on
+    it: the job fails with one line naming the scheduler and how to resume, instead of a
+    ``FutureCancelledError`` traceback per task."""
+
+    def __init__(self, address: str, why: str):
+        super().__init__(
+            f"lost the dask scheduler at {address} while this job's tasks ran on it ({why}): start the scheduler "
+            f"and its workers again (or unset the run option dask_scheduler and ${SCHEDULER_ENV} to work in this "
+            "process), then run the same command again (freeze run ...) to resume: the items already published "
+            "are kept")
+        self.address = address
 
 
 def scheduler_address(option: str | None) -> str | None:
@@ -195,39 +210,89 @@ class ThreadMapper(Mapper):
         super().close()  # anything the calling thread made itself
 
 
+class _OneLineErrors(logging.Filter):
+    """Folds the traceback of a log record into one line (``message (Type: first line)``).
+
+    distributed's client logs each failed attempt to reach a scheduler that went away
+    with its full traceback; the job then fails with :class:`SchedulerLost`, and those
+    tracebacks in the job's log would hide its one line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            e = record.exc_info[1]
+            why = str(e).splitlines()[0] if str(e) else ""
+            record.msg = f"{record.getMessage()} ({type(e).__name__}{': ' + why if why else ''})".replace("%", "%%")
+            record.args = ()
+            record.exc_info = None
+            record.exc_text = None
+        record.stack_info = None
+        return True
+
+
+def _distributed_handlers() -> list[logging.Handler]:
+    """The handlers of distributed's loggers (it gives several of them their own, and
+    they do not propagate)."""
+    names = [n for n in logging.root.manager.loggerDict if n == "distributed" or n.startswith("distributed.")]
+    return list({id(h): h for n in names for h in logging.getLogger(n).handlers}.values())
+
+
 class ClusterMapper(Mapper):
     """A ``distributed.Client`` of an existing cluster: ``shared`` is scattered once per
     map, the items are submitted one task each, the results gathered as they finish."""
 
     kind = "cluster"
 
-    def __init__(self, client: Any):
+    def __init__(self, client: Any, address: str | None = None):
         super().__init__()
         self.client = client
+        self.address = address or str(getattr(client.scheduler, "address", "") or "the scheduler")
         self.workers = max(1, sum(client.nthreads().values()))
+        self._filter = _OneLineErrors()
+        self._handlers = _distributed_handlers()
+        for h in self._handlers:
+            h.addFilter(self._filter)
 
     def map(self, fn: Callable[[S, T], R], items: Sequence[T], shared: S,
             done: Callable[[], None] | None = None) -> list[R]:
+        from concurrent.futures import CancelledError
+
         from distributed import as_completed
+        from distributed.comm.core import CommClosedError
 
         if not items:
             return []
-        shared_f = self.client.scatter(shared, hash=False)
-        futures = [self.client.submit(_call, fn, shared_f, item, pure=False) for item in items]
-        index = {f.key: i for i, f in enumerate(futures)}
+        futures: list[Any] = []
+        shared_f = None
         out: list[Any] = [None] * len(items)
         try:
+            shared_f = self.client.scatter(shared, hash=False)
+            futures = [self.client.submit(_call, fn, shared_f, item, pure=False) for item in items]
+            index = {f.key: i for i, f in enumerate(futures)}
             for f in as_completed(futures, loop=self.client.loop):
                 out[index[f.key]] = f.result()  # raises the task's own exception
                 if done is not None:
                     done()
+        except (CancelledError, CommClosedError) as e:
+            # Our tasks are cancelled only when the scheduler forgets them (it went away,
+            # or the connection to it did): a task's own error arrives as itself. (The
+            # task's own CommClosedError, if it opened connections of its own, reads the
+            # same; none of the stages' tasks does.)
+            raise SchedulerLost(self.address, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'no reason'}"
+                                ) from None
         finally:
-            self.client.cancel([*futures, shared_f])
+            try:
+                self.client.cancel([*futures, *([shared_f] if shared_f is not None else [])])
+            except (CancelledError, OSError):  # a scheduler that went away has nothing left to cancel
+                pass
         return out
 
     def close(self) -> None:
         # The workers' per-thread state goes with the scattered object; the client only.
-        self.client.close()
+        try:
+            self.client.close()
+        finally:
+            for h in self._handlers:
+                h.removeFilter(self._filter)
 
 
 def connect(address: str, timeout: float = CONNECT_TIMEOUT_S) -> Any:
@@ -267,7 +332,7 @@ def work_mapper(scheduler: str | None = None, threads: int | None = None) -> Ite
     (an address, or None: see :func:`scheduler_address`, which the caller applies), else
     on ``threads`` threads (None or 1: serially in this thread)."""
     if scheduler:
-        mapper: Mapper = ClusterMapper(connect(scheduler))
+        mapper: Mapper = ClusterMapper(connect(scheduler), scheduler)
     elif threads is not None and threads > 1:
         mapper = ThreadMapper(threads)
     else:

@@ -310,6 +310,34 @@ def atomic_dir(final_dir: Path | str, prefix: str = ".tmp-") -> Iterator[Path]:
         raise
 
 
+def swap_entries(staging: Path | str, out: Path | str, names: tuple[str, ...], aside: Path | str) -> None:
+    """Move the entries ``names`` (files or folders) of ``staging`` into ``out``, each
+    previous entry of the same name first moved into the new folder ``aside`` (in
+    ``out``, so that every move is a rename within one file system and needs no space).
+    Several entries cannot be replaced at once; on an error the moves done so far are
+    undone, as far as the file system allows, before the OSError propagates, so ``out``
+    holds the previous entries again. ``aside`` is left for the caller to delete."""
+    staging, out, aside = Path(staging), Path(out), Path(aside)
+    moved: list[str] = []  # names whose previous version is in ``aside``
+    placed: list[str] = []  # names whose new version is in ``out``
+    try:
+        aside.mkdir()
+        for name in names:
+            if (out / name).exists() or (out / name).is_symlink():
+                os.replace(out / name, aside / name)
+                moved.append(name)
+            os.replace(staging / name, out / name)
+            placed.append(name)
+    except OSError:
+        undo = [(out / n, staging / n) for n in placed] + [(aside / n, out / n) for n in moved]
+        for src, dst in undo:
+            try:
+                os.replace(src, dst)
+            except OSError:
+                pass  # left under a name the caller's records still account for
+        raise
+
+
 def atomic_write_text(path: Path | str, text: str) -> None:
     """Write ``text`` (UTF-8, ``\\n`` line ends) to ``path`` atomically (:func:`atomic_path`)."""
     with atomic_path(path) as tmp:

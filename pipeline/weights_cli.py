@@ -15,6 +15,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from pipeline.weights.fetch import TIMEOUT_S
+
 weights_app = typer.Typer(add_completion=False, no_args_is_help=True,
                           help="The encoders' weight files: list them, fetch them into the weights folder.")
 
@@ -34,7 +36,7 @@ def list_weights(
     """List the weight files the encoder manifests download, and their state here.
 
     Per manifest and file: source, path in the weights folder, state (missing, partial,
-    present, verified, mismatch), size and URL. Present files are hashed to verify them
+    present, verified, mismatch, invalid: not of its format), size and URL. Present files are hashed to verify them
     (about 1 s per GB)."""
     from pipeline.encoders.registry import resolve_weights_dir
     from pipeline.stand_in import paper_fetch
@@ -52,7 +54,8 @@ def list_weights(
     if as_json:
         print(json.dumps({"weights_dir": str(wdir), "downloads": rows}, indent=1))
         return
-    colour = {"verified": "green", "present": "yellow", "partial": "yellow", "mismatch": "red", "missing": "dim"}
+    colour = {"verified": "green", "present": "yellow", "partial": "yellow", "mismatch": "red", "invalid": "red",
+              "missing": "dim"}
     table = Table("manifest", "source", title=f"encoder weights in {wdir}")
     table.add_column("file", overflow="fold")
     table.add_column("state")
@@ -63,7 +66,7 @@ def list_weights(
                       human_size(r["bytes"]) if r["status"] != "missing" else f"~{human_size(r['bytes'])}", r["url"])
     Console(width=max(120, Console().width)).print(table)
     for r in rows:
-        if r["status"] in ("mismatch", "partial"):
+        if r["status"] in ("mismatch", "partial", "invalid"):
             _console().print(f"{r['manifest']}: {r['path']}: {r['note']}", style=colour[r["status"]], markup=False)
     paper = paper_fetch()
     _console().print(f"weights folder: {wdir} (--weights-dir, $FREEZE_WEIGHTS, or <project>/weights); "
@@ -80,6 +83,8 @@ def fetch_weights(
     fetch_all: bool = typer.Option(False, "--all", help="every manifest that has downloads from SOURCE"),
     progress: Optional[bool] = typer.Option(None, "--progress/--no-progress",
                                             help="byte progress bar (default: when stderr is a terminal)"),
+    timeout: float = typer.Option(TIMEOUT_S, min=0.1, help="seconds to wait for a connection, for the server's "
+                                                          "answer and for each read"),
 ) -> None:
     """Download the weight files of the named encoder manifests into the weights folder.
 
@@ -101,7 +106,7 @@ def fetch_weights(
         who = ", ".join(item.names)
         try:
             fetch_download(item.download, wdir, manifest=item.manifest, name=item.name, progress=progress,
-                           log=lambda line, who=who: console.print(f"{who}: {line}", markup=False))
+                           log=lambda line, who=who: console.print(f"{who}: {line}", markup=False), timeout=timeout)
         except WeightsFetchError as e:  # one line; the next file is still fetched
             console.print(f"error: {who}: {e}", style="red", markup=False)
             failed.append(item.download.file)

@@ -20,9 +20,10 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     obj_id, p = io.item_id(), io.params
     bop = io.bop()
     diameter = plan.model_info(bop, obj_id).diameter
+    mesh = bop.load_model(obj_id)  # first: a model the reader refuses is named before anything else is read
     tpl = load_arrays(io.input_dir("render_templates") / "templates.zarr")
     geo_enc, vis_enc = build_encoders(plan.run)
-    f = model_features(bop.load_model(obj_id), tpl, geo_enc, vis_enc, diameter, n_points=p.n_points,
+    f = model_features(mesh, tpl, geo_enc, vis_enc, diameter, n_points=p.n_points,
                        seed=io.seed(item, p.seed), batch_size=p.batch_size)
     with io.publish() as w:
         # where the encoders ran and in what precision: recorded, not keyed

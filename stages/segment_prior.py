@@ -12,10 +12,16 @@ Several prior files (``--config prior=a,b``) are merged first: detections of one
 (image, object) from different files whose masks overlap by ``merge_iou`` or more are
 one instance, and the more confident one is kept. Algorithm:
 :func:`pipeline.segmentation.candidates_from_priors`.
+
+Before that, where the dataset's ground truth is public, the stage refuses ground truth
+the score stage could not read (:meth:`pipeline.bop.BopDataset.ground_truth_problems`),
+in one line naming the file, the entry and the field: it is the first scene-side job,
+so a bad ``scene_gt.json`` stops the run at its start.
 """
 
 from __future__ import annotations
 
+from pipeline.bop.errors import BopFormatError
 from pipeline.plan import DatasetPlan
 from pipeline.store import write_table
 
@@ -25,8 +31,18 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
 
     io = plan.io("segment_prior", item)
     bop = io.bop()
-    table, report = candidates_from_priors(io.prior_paths, bop.targets(plan.root / plan.dataset.targets_file),
-                                           bop.obj_ids(), io.params)
+    targets = bop.targets(plan.root / plan.dataset.targets_file)
+    if plan.dataset.public_gt:
+        # No stage before score reads the ground truth: a NaN pose or a missing
+        # scene_gt_info.json would otherwise fail the run at its end, after every
+        # estimate was made. This is the first scene-side job; refusing here costs a
+        # parse of the target scenes' ground truth, once per dataset key.
+        problems = bop.ground_truth_problems(targets)
+        if problems:
+            more = f" (and {len(problems) - 1} more problems: freeze datasets check lists them)" if len(problems) > 1 else ""
+            raise BopFormatError(f"{problems[0]}{more}; the score stage would fail on it (to make estimates without "
+                                 "scoring them, set 'public_gt: false' in the dataset's manifest)")
+    table, report = candidates_from_priors(io.prior_paths, targets, bop.obj_ids(), io.params)
     with io.publish() as w:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key, "stage": "segment_prior"})
         w.summary.update(report)

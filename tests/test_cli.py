@@ -80,7 +80,8 @@ def test_score_command_refuses_an_r_that_is_not_a_rotation(tmp_path):
     csv = tmp_path / "zero_icbin-test.csv"
     write_results_csv(csv, est)
     out = tmp_path / "scores"
-    result = runner.invoke(app, ["score", str(csv), "--dataset-root", str(DATA / "icbin"), "--out", str(out)])
+    result = runner.invoke(app, ["score", str(csv), "--dataset-root", str(DATA / "icbin"), "--out", str(out),
+                                 "--no-progress"])  # (with progress, each step done is a line before it)
     assert result.exit_code == 1 and isinstance(result.exception, SystemExit)  # no traceback
     r = est.iloc[3]
     assert result.output == (f"{csv}: 2 of 6 estimates have an R that is not a rotation (max|R^T R - I| or "

@@ -15,9 +15,9 @@ import pytest
 import trimesh
 from typer.testing import CliRunner
 
-from pipeline.bop import (BopFormatError, BopDataset, CameraInfo, GtPose, Target, detection_from_mask, save_depth_png,
-                          save_detections, save_rgb, write_camera, write_models_info, write_ply, write_scene_camera,
-                          write_scene_gt, write_targets)
+from pipeline.bop import (BopFormatError, BopDataset, CameraInfo, GtInfo, GtPose, Target, detection_from_mask,
+                          save_depth_png, save_detections, save_rgb, write_camera, write_models_info, write_ply,
+                          write_scene_camera, write_scene_gt, write_scene_gt_info, write_targets)
 from pipeline.bop.wrap import model_info_from_vertices
 from pipeline.cli import app
 
@@ -49,6 +49,9 @@ def write_lmo(bop_root: Path) -> Path:
     write_scene_camera(scene / "scene_camera.json", {i: CameraInfo(K, DEPTH_SCALE, W, H) for i in IMAGES})
     pose = {o: GtPose(o, np.eye(3), np.array([60.0 * (o - 3), 0.0, 700.0])) for o in BOXES}
     write_scene_gt(scene / "scene_gt.json", {i: list(pose.values()) for i in IMAGES})
+    # the scorer reads each instance's visibility beside the poses (the check asks for it)
+    info = GtInfo((280, 200, 80, 80), (280, 200, 80, 80), 6400, 6400, 6400, 1.0)
+    write_scene_gt_info(scene / "scene_gt_info.json", {i: [info] * len(BOXES) for i in IMAGES})
     write_targets(ds / "test_targets_bop19.json", [Target(1, i, o, 1) for i in IMAGES for o in BOXES])
     mask = np.zeros((H, W), bool)
     mask[200:280, 280:360] = True

@@ -41,6 +41,7 @@ from pipeline.bop import (
     GtPose,
     ModelInfo,
     Target,
+    degenerate_mesh_problem,
     load_json,
     load_mesh,
     read_estimates_json,
@@ -410,7 +411,10 @@ def test_ply_round_trip(scratch, mesh, binary):
         assert (got is None) == (name not in mesh)
         if got is not None:
             assert got.dtype == mesh[name].dtype and np.array_equal(got, mesh[name])
-    if len(mesh["faces"]):
+    if len(mesh["faces"]) and degenerate_mesh_problem(mesh["vertices"], mesh["faces"]):
+        with pytest.raises(BopFormatError, match="spans no"):  # a point, a line, or triangles without area
+            load_mesh(path)
+    elif len(mesh["faces"]):
         assert np.array_equal(load_mesh(path).vertices, mesh["vertices"].astype(np.float64))
     else:
         with pytest.raises(BopFormatError, match="has no faces"):
@@ -611,7 +615,7 @@ def test_dataset_json_round_trip(scratch, data, n_images):
             return a is None and b is None or np.array_equal(a, b)
         return a == b
 
-    got = ds.scene_camera(2)
+    got = ds.scene_camera(2, check=False)  # random values: the round trip, not the camera rule (intrinsics_problem)
     assert list(got) == sorted(cams)
     for i, c in cams.items():
         assert all(same(getattr(got[i], k), getattr(c, k)) for k in ("K", "depth_scale", "width", "height", "R_w2c", "t_w2c"))

@@ -104,7 +104,7 @@ def test_atomic_file_and_folder_writes_leave_the_old_version_on_failure(tmp_path
 
 
 def test_there_is_one_atomic_write_in_the_project():
-    """Every atomic write goes through pipeline.store (atomic_path / atomic_dir)."""
+    """Every atomic write goes through pipeline.store (atomic_path / atomic_dir / swap_entries)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
@@ -112,3 +112,40 @@ def test_there_is_one_atomic_write_in_the_project():
                  for p in sorted((root / folder).rglob("*.py"))
                  if p.name != "store.py" and any(s in p.read_text() for s in ("os.replace(", "mkstemp(", ".rename(tmp"))]
     assert offenders == []
+
+
+def test_swap_entries_puts_everything_back_when_a_move_fails(tmp_path, monkeypatch):
+    """swap_entries replaces several entries; a move the file system refuses midway
+    leaves the previous entries in place and the new ones in staging."""
+    import errno
+    import os
+
+    from pipeline.store import swap_entries
+
+    out, staging = tmp_path / "out", tmp_path / "out" / ".staging"
+    (out / "a").mkdir(parents=True)
+    (out / "a" / "old.txt").write_text("old a")
+    (out / "b.json").write_text("old b")
+    staging.mkdir()
+    (staging / "a").mkdir()
+    (staging / "a" / "new.txt").write_text("new a")
+    (staging / "b.json").write_text("new b")
+
+    real, calls = os.replace, []
+
+    def refusing(src, dst):
+        calls.append(src)
+        if len(calls) == 3:  # a's two moves done, b's first refused
+            raise OSError(errno.ENOSPC, "No space left on device", str(src))
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", refusing)
+    with pytest.raises(OSError):
+        swap_entries(staging, out, ("a", "b.json"), out / ".aside")
+    monkeypatch.setattr(os, "replace", real)
+    assert (out / "a" / "old.txt").read_text() == "old a" and (out / "b.json").read_text() == "old b"
+    assert (staging / "a" / "new.txt").read_text() == "new a" and (staging / "b.json").read_text() == "new b"
+
+    swap_entries(staging, out, ("a", "b.json"), out / ".aside2")
+    assert (out / "a" / "new.txt").read_text() == "new a" and (out / "b.json").read_text() == "new b"
+    assert (out / ".aside2" / "b.json").read_text() == "old b"

@@ -32,6 +32,7 @@ from pipeline.encoders.gedi import STATE_KEY, GeDiNet  # noqa: E402
 from pipeline.encoders.registry import build_encoder  # noqa: E402
 from pipeline.weights import (WeightsFetchError, fetch_download, part_path, read_sidecar, select,  # noqa: E402
                               sidecar_path)
+from pipeline.weights.fetch import part_meta_path  # noqa: E402
 
 runner = CliRunner()
 GEDI_MEMBER = "chkpts/3dmatch/chkpt.tar"
@@ -41,8 +42,8 @@ GEDI_MEMBER = "chkpts/3dmatch/chkpt.tar"
 
 
 class _Handler(BaseHTTPRequestHandler):
-    """GET with single open-ended ranges (``bytes=N-``), 404 for unknown paths, and a
-    one-shot mode that closes the connection after ``cut_after`` bytes of the body."""
+    """GET with single open-ended ranges (``bytes=N-``) and ``If-Range``, 404 for unknown
+    paths, and the misbehaviours a test switches on in its :class:`Loopback`."""
 
     protocol_version = "HTTP/1.1"
 
@@ -53,12 +54,26 @@ class _Handler(BaseHTTPRequestHandler):
         state: Loopback = self.server.state  # type: ignore[attr-defined]
         rng = self.headers.get("Range")
         state.requests.append((self.path, rng))
+        state.if_ranges.append(self.headers.get("If-Range"))
+        if state.hang:  # accept the connection, read the request, never answer
+            state.released.wait(30)
+            self.close_connection = True
+            return
+        if self.path in state.redirects:
+            self.send_response(302)
+            self.send_header("Location", state.url(state.redirects[self.path]))
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
         body = state.files.get(self.path)
         if body is None:
             self.send_error(404, "Not Found")
             return
+        etag = f'"{hashlib.sha256(body).hexdigest()[:16]}"'  # a strong ETag: changes with the bytes
+        if_range = self.headers.get("If-Range")
+        honour = rng and state.ranges and (not if_range or not state.if_range or if_range == etag)
         start = 0
-        if rng and state.ranges:
+        if honour:
             start = int(re.fullmatch(r"bytes=(\d+)-", rng).group(1))
             if start >= len(body):
                 self.send_response(416)
@@ -71,8 +86,14 @@ class _Handler(BaseHTTPRequestHandler):
         else:
             self.send_response(200)
         rest = body[start:]
-        self.send_header("Content-Type", "application/octet-stream")
-        self.send_header("Content-Length", str(len(rest)))
+        if state.validators:
+            self.send_header("ETag", etag)
+        self.send_header("Content-Type", state.content_type)
+        if state.no_length:  # HTTP/1.1 without Content-Length: the body ends when the connection closes
+            self.send_header("Connection", "close")
+            self.close_connection = True
+        else:
+            self.send_header("Content-Length", str(len(rest)))
         self.end_headers()
         if state.cut_after is not None:  # promise the whole body, send part of it, hang up
             n, state.cut_after = state.cut_after, None
@@ -86,13 +107,27 @@ class _Handler(BaseHTTPRequestHandler):
 
 class Loopback:
     """An HTTP server on 127.0.0.1 (port 0) in a thread: ``files`` maps a path (with
-    its query) to bytes; ``requests`` records (path, Range header) of every GET."""
+    its query) to bytes; ``requests`` records (path, Range header) of every GET and
+    ``if_ranges`` its If-Range header.
+
+    Misbehaviours: ``cut_after`` (send that many bytes of the next body, then close),
+    ``no_length`` (no Content-Length), ``content_type``, ``validators`` False (no ETag),
+    ``if_range`` False (a resume gets the rest of whatever is served now), ``ranges``
+    False (always 200), ``hang`` (never answer), ``redirects`` (path -> path, 302)."""
 
     def __init__(self) -> None:
         self.files: dict[str, bytes] = {}
         self.requests: list[tuple[str, str | None]] = []
+        self.if_ranges: list[str | None] = []
         self.cut_after: int | None = None
         self.ranges = True
+        self.if_range = True
+        self.validators = True
+        self.no_length = False
+        self.hang = False
+        self.released = threading.Event()
+        self.redirects: dict[str, str] = {}
+        self.content_type = "application/octet-stream"
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
         self.httpd.state = self  # type: ignore[attr-defined]
         self.httpd.daemon_threads = True
@@ -109,6 +144,7 @@ class Loopback:
         return f"http://127.0.0.1:{self.httpd.server_address[1]}{path}"
 
     def close(self) -> None:
+        self.released.set()
         self.httpd.shutdown()
         self.httpd.server_close()
 
@@ -280,11 +316,29 @@ def test_a_server_without_ranges_restarts_from_zero(tmp_path, server, tiny_dinov
     manifests, wdir = tmp_path / "manifests", tmp_path / "weights"
     _official_manifest(manifests, server, body)
     final = wdir / "dinov2_vitt14_pretrain.pth"
-    final.parent.mkdir(parents=True)
-    part_path(final).write_bytes(b"stale bytes from another file")
+    server.cut_after = 29  # a first transfer records the server's ETag beside the .part
+    with pytest.raises(WeightsFetchError, match="interrupted after 29"):
+        _fetch_all(["dinov2-vitt14"], manifests, wdir)
+    assert part_meta_path(final).is_file()
     server.ranges = False  # answers 200 with the whole file
     (result,) = _fetch_all(["dinov2-vitt14"], manifests, wdir)
     assert server.requests[-1][1] == "bytes=29-"
+    assert (result.resumed_from, result.received) == (0, len(body))
+    assert final.read_bytes() == body and read_sidecar(final) == _sha(body)
+    assert not part_path(final).exists() and not part_meta_path(final).exists()
+
+
+def test_a_part_without_a_record_of_the_servers_file_is_not_resumed(tmp_path, server, tiny_dinov2):
+    """A .part whose server file was not recorded (no ETag or Last-Modified) and no pinned
+    digest: nothing could tell old bytes from new, so the fetch starts from zero (issue 28)."""
+    body = tiny_dinov2[1]
+    manifests, wdir = tmp_path / "manifests", tmp_path / "weights"
+    _official_manifest(manifests, server, body)
+    final = wdir / "dinov2_vitt14_pretrain.pth"
+    final.parent.mkdir(parents=True)
+    part_path(final).write_bytes(body[:29])
+    (result,) = _fetch_all(["dinov2-vitt14"], manifests, wdir)
+    assert server.requests[-1][1] is None  # no Range
     assert (result.resumed_from, result.received) == (0, len(body))
     assert final.read_bytes() == body and read_sidecar(final) == _sha(body)
 
@@ -292,12 +346,16 @@ def test_a_server_without_ranges_restarts_from_zero(tmp_path, server, tiny_dinov
 def test_a_complete_part_is_published_after_416(tmp_path, server, tiny_dinov2):
     body = tiny_dinov2[1]
     manifests, wdir = tmp_path / "manifests", tmp_path / "weights"
-    _official_manifest(manifests, server, body)
+    _, url = _official_manifest(manifests, server, body)
     final = wdir / "dinov2_vitt14_pretrain.pth"
     final.parent.mkdir(parents=True)
     part_path(final).write_bytes(body)  # a run that ended between the transfer and the rename
+    etag = f'"{_sha(body)[:16]}"'  # what that run recorded of the server's file
+    part_meta_path(final).write_text(json.dumps({"url": url, "etag": etag, "last_modified": None,
+                                                 "length": len(body)}))
     (result,) = _fetch_all(["dinov2-vitt14"], manifests, wdir)
     assert server.requests == [("/dinov2/dinov2_vitt14/dinov2_vitt14_pretrain.pth", f"bytes={len(body)}-")]
+    assert server.if_ranges == [etag]
     assert result.received == 0 and final.read_bytes() == body and read_sidecar(final) == _sha(body)
 
 

@@ -8,6 +8,7 @@ from .dataset import (
     GtPose,
     ModelInfo,
     Target,
+    intrinsics_problem,
     save_depth_png,
     save_mask_png,
     save_rgb,
@@ -35,7 +36,7 @@ from .detections import (
 )
 from .errors import BopFormatError
 from .jsonio import load_json, save_bop_json
-from .ply import PlyData, load_mesh, read_ply, write_ply
+from .ply import PlyData, degenerate_mesh_problem, load_mesh, read_ply, write_ply
 from .results import read_estimates_json, read_results_csv, write_results_csv
 
 __all__ = [
@@ -51,7 +52,9 @@ __all__ = [
     "PlyData",
     "Target",
     "category_id_problem",
+    "degenerate_mesh_problem",
     "detection_from_mask",
+    "intrinsics_problem",
     "load_detections",
     "load_json",
     "load_mesh",

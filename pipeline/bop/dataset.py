@@ -250,6 +250,52 @@ def depth_format_problem(raw: np.ndarray) -> str | None:
     return f"depth must be 16-bit single-channel PNG/TIF, got {got}"
 
 
+MAX_FOV_DEG = 170.0
+"""Widest field of view a pinhole ``cam_K`` may give across its image: a focal length of
+a few pixels (fx = 1e-300) or zero is not a camera a depth image can be lifted with."""
+MIN_FOV_DEG = 0.1
+"""Narrowest field of view: a focal length beyond ~570 image widths is no real lens."""
+
+
+def _focal_range(size_px: int) -> tuple[float, float]:
+    """(smallest, largest) plausible focal length in px for an image side of ``size_px``
+    px: the fields of view :data:`MAX_FOV_DEG` and :data:`MIN_FOV_DEG` across it."""
+    half = 0.5 * float(size_px)
+    return (half / np.tan(np.radians(MAX_FOV_DEG / 2)), half / np.tan(np.radians(MIN_FOV_DEG / 2)))
+
+
+def intrinsics_problem(K: np.ndarray, width: int, height: int) -> str | None:
+    """None if ``K`` ((3, 3) float64, px) is a plausible pinhole camera matrix for a
+    ``width`` x ``height`` px image, else a one-line reason (without the file's name).
+
+    The one rule for intrinsics, shared by the dataset reader and ``freeze datasets
+    check``. Refused: non-finite entries; focal lengths that are not positive or give a
+    field of view wider than :data:`MAX_FOV_DEG` or narrower than :data:`MIN_FOV_DEG`;
+    a principal point more than one image side outside the image (cropped images keep
+    theirs near the frame; cy = 1e9 is no camera); a matrix that is not upper triangular
+    with last row 0 0 1. Skew (K[0, 1]) is allowed, as in OpenCV's model."""
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        return f"expected 9 finite numbers, got {brief(K.reshape(-1).tolist())}"
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    if fx <= 0 or fy <= 0:
+        # (no "[fx, ...": rich would take it for markup where a command prints the line)
+        return f"focal lengths must be positive, got fx={fx:g}, fy={fy:g} (cam_K is fx 0 cx 0 fy cy 0 0 1, in px)"
+    if not (np.allclose(K[2], [0.0, 0.0, 1.0], rtol=0, atol=1e-6) and K[1, 0] == 0):
+        return (f"not a pinhole camera matrix: expected fx 0 cx 0 fy cy 0 0 1, got "
+                f"{brief(K.reshape(-1).tolist())}")
+    for name, f, side, what in (("fx", fx, width, "wide"), ("fy", fy, height, "high")):
+        lo, hi = _focal_range(side)
+        if not lo <= f <= hi:
+            return (f"{name}={f:g} px is no camera for an image {side} px {what} (expected {lo:.3g} to {hi:.3g} px: "
+                    f"a field of view between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees)")
+    for name, c, side in (("cx", cx, width), ("cy", cy, height)):
+        if not -side <= c <= 2 * side:
+            return (f"principal point {name}={c:g} px lies far outside the {width}x{height} px image "
+                    f"(expected {-side} to {2 * side} px)")
+    return None
+
+
 def read_depth_image(path: Path | str) -> np.ndarray:
     """The raw (H, W) depth image at ``path``: uint16 (or float) depth units, not yet
     multiplied by depth_scale. Raises ``BopFormatError`` naming the file when it cannot
@@ -294,6 +340,7 @@ class BopDataset:
         self._json_cache: dict[Path, Any] = {}
         self._models_info: dict[int, ModelInfo] | None = None
         self._scene_camera: dict[int, dict[int, CameraInfo]] = {}
+        self._camera_problems: dict[int, list[str]] = {}
         self._scene_gt: dict[int, dict[int, list[GtPose]]] = {}
         self._scene_gt_info: dict[int, dict[int, list[GtInfo]]] = {}
         self._warned_eval_fallback = False
@@ -406,8 +453,31 @@ class BopDataset:
             f"{self.camera_path()}: fields 'width'/'height' missing and no image in {self.scene_dir(scene_id)} to take them from"
         )
 
-    def scene_camera(self, scene_id: int) -> dict[int, CameraInfo]:
-        """CameraInfo per im_id, sorted by im_id."""
+    def scene_camera(self, scene_id: int, check: bool = True) -> dict[int, CameraInfo]:
+        """CameraInfo per im_id, sorted by im_id.
+
+        With ``check`` (what every stage gets), entries whose ``cam_K`` is no plausible
+        camera (:func:`intrinsics_problem`) or whose ``depth_scale`` is not positive make
+        it raise ``BopFormatError``: one line naming the file, the first such image and
+        the field, with the count of the others. Lifting depth through a zero focal
+        length, or scaling it by 0, would drop every candidate for "too few depth
+        points" and end in AR 0 without a word about the camera. ``check=False`` reads
+        the values as they are (``freeze datasets check`` reports them through
+        :meth:`camera_problems`)."""
+        self._read_scene_camera(scene_id)
+        if check and self._camera_problems[scene_id]:
+            raise BopFormatError("; ".join(self._camera_problems[scene_id]))
+        return self._scene_camera[scene_id]
+
+    def camera_problems(self, scene_id: int) -> list[str]:
+        """One line per refused field of the scene's camera entries (see
+        :meth:`scene_camera`): the file, the first image, the field and why, and how many
+        more images share the problem. Empty when every entry is usable."""
+        self._read_scene_camera(scene_id)
+        return list(self._camera_problems[scene_id])
+
+    def _read_scene_camera(self, scene_id: int) -> None:
+        """Parse scene_camera.json of ``scene_id`` into the caches (values and problems)."""
         if scene_id not in self._scene_camera:
             path = self.scene_dir(scene_id) / "scene_camera.json"
             content = self._json(path)
@@ -418,24 +488,43 @@ class BopDataset:
             # Validated here so that _image_size gets ints (it falls back to an image's size).
             size = {k: _int(cam_path, cam[k], k) for k in ("width", "height") if k in cam}
             width, height = self._image_size(scene_id, size if len(size) == 2 else {})
+            if width <= 0 or height <= 0:
+                raise BopFormatError(f"{cam_path}: fields 'width', 'height' must be positive, got {width}x{height} px")
             cam_scale = float(_floats(cam_path, cam["depth_scale"], 1, "depth_scale")[0]) if "depth_scale" in cam else None
             out = {}
+            # (file, field) -> [first problem's line, how many entries have one]: a
+            # 1e5-entry file of zeros is one line, not 1e5
+            problems: dict[tuple[Path, str], list] = {}
+
+            def refuse(file: Path, field: str, im_id: int, why: str) -> None:
+                line = f"{file}: scene {scene_id}, image {im_id}, field '{field}': {why}"
+                first = problems.setdefault((file, field), [line, 0])
+                first[1] += 1
+
             for im_id, key, d in _id_items(path, content, "im_id"):
                 e = brief(key)
                 K = _floats(path, _get(path, d, "cam_K", e), 9, "cam_K", e).reshape(3, 3)
                 if "depth_scale" in d:
                     scale = float(_floats(path, d["depth_scale"], 1, "depth_scale", e)[0])
+                    scale_file = path
                 elif cam_scale is not None:
-                    scale = cam_scale
+                    scale, scale_file = cam_scale, cam_path
                 else:
                     raise BopFormatError(f"{path}: entry {e}, field 'depth_scale' missing (and not in camera.json)")
+                why = intrinsics_problem(K, width, height)
+                if why:
+                    refuse(path, "cam_K", im_id, why)
+                if scale <= 0:
+                    refuse(scale_file, "depth_scale", im_id, f"must be positive (mm per depth unit), got {scale:g}")
                 R_w2c = t_w2c = None
                 if "cam_R_w2c" in d and "cam_t_w2c" in d:
                     R_w2c = _floats(path, d["cam_R_w2c"], 9, "cam_R_w2c", e).reshape(3, 3)
                     t_w2c = _floats(path, d["cam_t_w2c"], 3, "cam_t_w2c", e)
                 out[im_id] = CameraInfo(K, scale, width, height, R_w2c, t_w2c)
             self._scene_camera[scene_id] = dict(sorted(out.items()))
-        return self._scene_camera[scene_id]
+            self._camera_problems[scene_id] = [
+                line + (f" (and {n - 1} more image{'s' if n > 2 else ''} of the scene)" if n > 1 else "")
+                for line, n in problems.values()]
 
     def scene_gt(self, scene_id: int) -> dict[int, list[GtPose]]:
         """Ground-truth instances per im_id (list index = gt_id, as in mask file names)."""
@@ -486,6 +575,48 @@ class BopDataset:
                 out[im_id] = infos
             self._scene_gt_info[scene_id] = dict(sorted(out.items()))
         return self._scene_gt_info[scene_id]
+
+    def ground_truth_problems(self, targets: Iterable[Target]) -> list[str]:
+        """One line per problem of the ground truth the scorer reads for ``targets``:
+        ``scene_gt.json`` of every target scene that has one must parse (finite poses:
+        a NaN in ``cam_R_m2c`` is refused here, naming the file, the entry and the
+        field), ``scene_gt_info.json`` beside it too, and every target image needs an
+        entry in both, of the same length. Scenes without ``scene_gt.json`` are not
+        problems (private test ground truth: the score stage says so).
+
+        Checked by ``freeze datasets check`` and by the first scene-side stage
+        (segment_prior), so that a bad file stops a run at its start rather than in the
+        score stage at its end."""
+        by_scene: dict[int, set[int]] = {}
+        for t in targets:
+            by_scene.setdefault(t.scene_id, set()).add(t.im_id)
+        out = []
+        for scene_id, im_ids in sorted(by_scene.items()):
+            gt_path = self.scene_dir(scene_id) / "scene_gt.json"
+            if not gt_path.is_file():
+                continue
+            info_path = self.scene_dir(scene_id) / "scene_gt_info.json"
+            try:
+                gts = self.scene_gt(scene_id)
+                if not info_path.is_file():
+                    out.append(f"{info_path}: not found beside scene_gt.json (the scores need each instance's "
+                               "visib_fract)")
+                    continue
+                infos = self.scene_gt_info(scene_id)
+            except BopFormatError as e:
+                out.append(str(e))
+                continue
+            missing = sorted(i for i in im_ids if i not in gts)
+            if missing:
+                out.append(f"{gt_path}: no entry for target image {missing[0]}"
+                           + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+            unequal = sorted(i for i in im_ids if i in gts and len(infos.get(i, ())) != len(gts[i]))
+            if unequal:
+                i = unequal[0]
+                out.append(f"{info_path}: image {i} has {len(infos.get(i, ()))} entries, scene_gt.json has "
+                           f"{len(gts[i])} (one per instance in both)"
+                           + (f" (and {len(unequal) - 1} more images)" if len(unequal) > 1 else ""))
+        return out
 
     # -- images
 
@@ -695,8 +826,17 @@ def write_image(path: Path, image: np.ndarray) -> None:
     """Write ``image`` as OpenCV stores it (BGR or single channel; the extension picks the
     format), creating the folder; OSError when OpenCV cannot."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"{path}: OpenCV could not write the image (unsupported extension?)")
+    # encoded in memory and written by Python, not cv2.imwrite: a full or read-only disk
+    # then raises the OS's error (errno, file name) instead of a bare False that reads
+    # like an unsupported extension
+    try:
+        ok, data = cv2.imencode(path.suffix, image)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise OSError(f"{path}: OpenCV could not encode the image (unsupported extension {path.suffix!r}?)")
+    with open(path, "wb") as f:
+        f.write(data.tobytes())
 
 
 def save_depth_png(path: Path | str, depth_mm: np.ndarray, depth_scale: float) -> None:

@@ -521,14 +521,53 @@ def read_ply(path: Path | str) -> PlyData:
 # ---------------------------------------------------------------------------- trimesh
 
 
+SPAN_TOLERANCE = 1e-5
+"""Relative size below which a mesh's second extent (or its area) counts as none: far
+below any real object's proportions (a 150 mm pen 1 mm thick is 7e-3), above float32
+rounding of vertices that lie on a line."""
+
+
+def degenerate_mesh_problem(vertices: np.ndarray, faces: np.ndarray) -> str | None:
+    """None if the mesh (vertices (V, 3) mm, faces (F, 3) indices) spans a surface,
+    else why not, in words: every used vertex one point, all on a line, or triangles
+    of no area. Such a model cannot be rendered into templates nor sampled into surface
+    points (the stages would fail on it with numpy's errors, far from the file), so the
+    reader refuses it. Non-finite vertices are left out (reported elsewhere)."""
+    v = np.asarray(vertices, dtype=np.float64)  # (V, 3) mm
+    in_face = np.zeros(len(v), dtype=bool)
+    in_face[np.asarray(faces).reshape(-1)] = True  # (no sort: models reach millions of faces)
+    used = v[in_face & np.isfinite(v).all(axis=1)]  # (U, 3) mm
+    if len(used) == 0:
+        return None
+    centred = used - used.mean(axis=0)
+    # the principal extents from the 3x3 scatter matrix: cheap for millions of vertices
+    spread = np.sqrt(np.clip(np.linalg.eigvalsh(centred.T @ centred / len(used)), 0.0, None))[::-1]  # (3,) mm
+    if spread[0] <= 0:
+        return f"all its {len(used)} vertices are one point: the model spans no area"
+    if spread[1] <= SPAN_TOLERANCE * spread[0]:
+        return f"its {len(used)} vertices lie on a line: the model spans no area"
+    # Summed chunk by chunk, stopping once it is enough: a real model's first chunk is,
+    # and the memory of a multi-million-face model stays bounded.
+    area, enough, chunk = 0.0, (SPAN_TOLERANCE * spread[0]) ** 2, 1 << 16
+    for start in range(0, len(faces), chunk):
+        tri = v[np.asarray(faces[start:start + chunk])]  # (f, 3, 3) mm
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area += float(np.nansum(np.linalg.norm(cross, axis=1))) / 2
+        if area > enough:
+            return None
+    return f"its {len(faces)} triangles have no area (every face is degenerate): the model spans no surface"
+
+
 def load_mesh(path: Path | str) -> trimesh.Trimesh:
     """Load a PLY as a ``trimesh.Trimesh`` (mm) that pyrender renders in colour.
 
     Vertex order is kept (``process=False``), so indices match the file. Texture UVs
     with their image become ``TextureVisuals``; vertex colours become ``ColorVisuals``;
     meshes with neither get a uniform grey. ``BopFormatError`` (naming the file) when
-    ``read_ply`` fails, the PLY has no faces (a point cloud), or a texture image named
-    in the header is missing or cannot be decoded.
+    ``read_ply`` fails, the PLY has no faces (a point cloud), spans no surface (its
+    vertices on a line or one point, or its triangles without area:
+    :func:`degenerate_mesh_problem`), or a texture image named in the header is missing
+    or cannot be decoded.
     """
     import trimesh
 
@@ -536,6 +575,9 @@ def load_mesh(path: Path | str) -> trimesh.Trimesh:
     ply = read_ply(path)
     if len(ply.faces) == 0:  # a point cloud: nothing to render or to sample a surface on
         raise BopFormatError(f"{path}: has no faces; a surface mesh is needed")
+    flat = degenerate_mesh_problem(ply.vertices, ply.faces)
+    if flat:
+        raise BopFormatError(f"{path}: {flat}; templates, surface samples and scores need a surface mesh")
     mesh = trimesh.Trimesh(
         vertices=ply.vertices.astype(np.float64),
         faces=ply.faces,

@@ -66,6 +66,7 @@ import hashlib
 import json
 import math
 import os
+import pickle
 import re
 import warnings
 from pathlib import Path
@@ -496,9 +497,15 @@ def load_official(path: str | os.PathLike, model: str) -> torch.nn.Module:
 
     config = hf_config_for(model)
     cls = Dinov2WithRegistersModel if getattr(config, "num_register_tokens", 0) else Dinov2Model
+    from pipeline.weights.formats import check_weights_file, unreadable_checkpoint
+
+    check_weights_file(path, "dinov2", manifest_name(model))  # a web page, a truncated download: one line
     with torch.device("meta"):
         net = cls(config)
-    sd = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        sd = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as exc:  # torch's message advises weights_only=False
+        raise unreadable_checkpoint(path, exc, "dinov2", manifest_name(model)) from None
     if isinstance(sd, dict) and "model" in sd and isinstance(sd["model"], dict):
         sd = sd["model"]
     mapped = {k: v.float() if v.is_floating_point() else v for k, v in official_to_hf(sd, net.state_dict().keys()).items()}
@@ -513,10 +520,29 @@ def load_official(path: str | os.PathLike, model: str) -> torch.nn.Module:
     return net
 
 
+def check_weight_files(path: str | os.PathLike, model: str | None = None) -> None:
+    """Raise :class:`~pipeline.weights.formats.NotAWeightsFile` (one line naming the file)
+    when the official file, or a Hugging Face folder's ``config.json`` and weights, are
+    not of their format (a web page saved under the name, a truncated download). Reads
+    a few bytes of each (and a zip's directory), so it runs before any long work.
+    ``model`` (e.g. ``vits14``) names the manifest that fetches the file again."""
+    from pipeline.weights.formats import check_weights_file
+
+    path = Path(path)
+    fetch = manifest_name(model) if model else None
+    if not path.is_dir():
+        check_weights_file(path, "dinov2", fetch)
+        return
+    for name in ("config.json", "model.safetensors", "pytorch_model.bin"):
+        if (path / name).is_file():
+            check_weights_file(path / name, "dinov2", fetch)
+
+
 def load_hf_dir(path: str | os.PathLike) -> torch.nn.Module:
     """A ``Dinov2Model``/``Dinov2WithRegistersModel`` from a local HF-layout directory."""
     from transformers import Dinov2Model, Dinov2WithRegistersModel
 
+    check_weight_files(path)
     model_type = json.loads((Path(path) / "config.json").read_text()).get("model_type")
     cls = Dinov2WithRegistersModel if model_type == "dinov2_with_registers" else Dinov2Model
     return cls.from_pretrained(str(path), local_files_only=True)
@@ -601,6 +627,7 @@ class Dinov2Encoder(VisualEncoder):
                 f"weights folder). Nothing is downloaded.", places)
         self.weights_path = path.resolve()
         self.hf_dir = self.weights_path.is_dir()
+        check_weight_files(self.weights_path, self.model)  # not a checkpoint: fail now, not at the first encode
         if self.hf_dir:
             self._check_hf_config()
         self.dim = int(self._hidden_size)

@@ -91,6 +91,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import pickle
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -338,10 +339,16 @@ def save_random_checkpoint(path: str | os.PathLike, seed: int = 0, extra: dict |
 
 def load_gedi_net(path: str | os.PathLike, device: str | torch.device = "cpu") -> GeDiNet:
     """The network with the weights of the checkpoint at ``path`` (strict, weights_only)."""
+    from pipeline.weights.formats import check_weights_file, unreadable_checkpoint
+
     path = Path(path)
     if not path.is_file():
         raise WeightsNotFound(_missing_message(path), [path.resolve()])
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    check_weights_file(path, "gedi", "gedi")  # a web page or a truncated download: one line, before torch reads it
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as exc:  # torch's message advises weights_only=False
+        raise unreadable_checkpoint(path, exc, "gedi", "gedi") from None
     if not isinstance(ckpt, dict) or STATE_KEY not in ckpt:
         keys = list(ckpt)[:8] if isinstance(ckpt, dict) else type(ckpt).__name__
         raise ValueError(f"gedi: {path} is not a GeDi checkpoint: no {STATE_KEY!r} entry (found {keys})")

@@ -64,10 +64,19 @@ def dataset_manifest(name: str, width: int, height: int, image_mode: str = "rgb"
     }
 
 
+def pipeline_command(bop_root: Path, manifest: Path) -> str:
+    """The shell command that runs the pipeline on a wrapped frame, each argument quoted
+    (:func:`shlex.quote`) so that it pastes whole into a POSIX shell whatever the paths hold."""
+    import shlex
+
+    return shlex.join(["snakemake", "--cores", "2", "bop_all", "--config", f"bop_root={bop_root}",
+                       f"datasets={manifest}"])
+
+
 def write_frame_dataset(bop_root: Path, name: str, *, rgb: np.ndarray, depth_mm: np.ndarray, K: np.ndarray,
                         model_path: Path, model_scale: float = 1.0, mask: np.ndarray | None = None,
                         bbox: Sequence[float] | None = None, kept_mask: np.ndarray | None = None,
-                        image_mode: str = "rgb") -> FrameDataset:
+                        image_mode: str = "rgb", final_root: Path | None = None) -> FrameDataset:
     """Write the frame as ``<bop_root>/<name>`` (replacing a previous one of that name),
     its prior and ``<bop_root>/<name>.yaml``.
 
@@ -75,7 +84,9 @@ def write_frame_dataset(bop_root: Path, name: str, *, rgb: np.ndarray, depth_mm:
     coordinates times ``model_scale`` are mm. The prior's mask is ``mask``, or, with only
     a box, the box's pixels in ``kept_mask`` (what :func:`pipeline.geometry.box_points.box_candidate_points`
     kept); its bbox is ``bbox`` when given. image_mode: ``"gray"`` for a grey image (see
-    :func:`dataset_manifest`). Raises ValueError on bad input.
+    :func:`dataset_manifest`). final_root: where ``bop_root`` will be once moved into
+    place (``freeze estimate`` writes to a staging folder first), named in the command
+    the manifest's comment gives (default ``bop_root``). Raises ValueError on bad input.
     """
     from pipeline.bop import wrap
     from pipeline.store import atomic_write_text
@@ -88,7 +99,9 @@ def write_frame_dataset(bop_root: Path, name: str, *, rgb: np.ndarray, depth_mm:
                            scene_id=SCENE_ID, im_id=IM_ID, detector=DETECTOR, overwrite=True,
                            grey=image_mode == "gray")
     manifest = bop_root / f"{name}.yaml"
-    atomic_write_text(manifest, "# A frame wrapped by `freeze estimate`; run it with\n"
-                                f"#   snakemake --cores 2 bop_all --config bop_root={bop_root} datasets={manifest}\n"
-                      + text)
+    shown = Path(final_root) if final_root is not None else bop_root
+    command = pipeline_command(shown, shown / manifest.name)
+    if "\n" in command or "\r" in command:  # a path with a line break cannot sit in a YAML comment
+        command = "snakemake --cores 2 bop_all --config bop_root=<this folder> datasets=<this file>"
+    atomic_write_text(manifest, f"# A frame wrapped by `freeze estimate`; run it with\n#   {command}\n" + text)
     return FrameDataset(root=root, manifest=manifest, prior=wrap.detections_path(bop_root, name, DETECTOR))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -23,14 +23,26 @@ class EstimateError(ValueError):
     """Bad input to ``freeze estimate``; the message names the file and the field."""
 
 
+FOCAL_RANGE = (0.005, 1e4)
+"""Sane focal lengths, in image sides: fx / width and fy / height between these, a field
+of view between about 179 and 0.006 degrees (real lenses: about 0.5 to 5)."""
+PRINCIPAL_MARGIN = 1.0
+"""How far outside the image, in image sides, the principal point (cx, cy) may lie (a
+crop of a larger image has it off-centre, never far off)."""
+
+
 @dataclass(frozen=True)
 class Camera:
     """Intrinsics ``K`` (3, 3) float64 (OpenCV) and the depth scale the file gives
-    (mm per depth unit; None when it gives none). ``form`` names the JSON form read."""
+    (mm per depth unit; None when it gives none). ``form`` names the JSON form read;
+    ``path`` the file and ``fields`` the name in it of each of ``fx``, ``fy``, ``cx``,
+    ``cy`` (e.g. ``cam_K[0]``), for the messages of :func:`check_intrinsics`."""
 
     K: np.ndarray
     depth_scale: float | None
     form: str
+    path: Path | None = None
+    fields: dict[str, str] = field(default_factory=dict)
 
 
 def _number(path: Path, where: str, value: Any) -> float:
@@ -70,10 +82,15 @@ def load_camera(path: Path | str) -> Camera:
     if "cam_K" in doc or "K" in doc:
         name = "cam_K" if "cam_K" in doc else "K"
         raw = doc[name]
-        flat = np.asarray(raw, dtype=object).reshape(-1) if isinstance(raw, list) else None
+        try:
+            flat = np.asarray(raw, dtype=object).reshape(-1) if isinstance(raw, list) else None
+        except ValueError:  # ragged nested lists
+            flat = None
         if flat is None or flat.size != 9 or any(isinstance(v, list) for v in flat):
             raise EstimateError(f"{path}: field '{prefix}{name}' must be 9 numbers (row-major) or a 3x3 list, got {raw!r}")
-        K = np.array([_number(path, f"{prefix}{name}", v) for v in flat], dtype=np.float64).reshape(3, 3)
+        nested = isinstance(raw[0], list)
+        element = [f"{prefix}{name}[{i // 3}][{i % 3}]" if nested else f"{prefix}{name}[{i}]" for i in range(9)]
+        K = np.array([_number(path, element[i], v) for i, v in enumerate(flat)], dtype=np.float64).reshape(3, 3)
         form = "scene_camera (cam_K)" if name == "cam_K" else "K matrix"
     elif any(k in doc for k in ("fx", "fy", "cx", "cy")):
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in doc]
@@ -82,18 +99,79 @@ def load_camera(path: Path | str) -> Camera:
         fx, fy, cx, cy = (_number(path, f"{prefix}{k}", doc[k]) for k in ("fx", "fy", "cx", "cy"))
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         form = "camera.json (fx, fy, cx, cy)"
+        element = [f"{prefix}{k}" for k in ("fx", "", "cx", "", "fy", "cy", "", "", "")]
     else:
         raise EstimateError(f"{path}: no intrinsics: expected field 'cam_K' (BOP/SAM-6D), 'K' or 'fx', 'fy', 'cx', 'cy' "
                             f"(found: {', '.join(map(str, doc)) or 'nothing'})")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
-        raise EstimateError(f"{path}: the intrinsics {K.reshape(-1).tolist()} are not a pinhole camera matrix "
-                            "(positive fx, fy; last row 0 0 1)")
+    fields = {"fx": element[0], "fy": element[4], "cx": element[2], "cy": element[5]}
+    for k in ("fx", "fy"):
+        v = K[(0, 0) if k == "fx" else (1, 1)]
+        if v <= 0:
+            raise EstimateError(f"{path}: field {_label(fields[k], k)} = {v:.6g}: the focal length must be a positive "
+                                "number of pixels")
+    # a pinhole camera matrix is upper triangular with last row 0 0 1: [[fx, s, cx], [0, fy, cy], [0, 0, 1]]
+    for (r, c), want in (((1, 0), 0.0), ((2, 0), 0.0), ((2, 1), 0.0), ((2, 2), 1.0)):
+        if not math.isclose(K[r, c], want, rel_tol=1e-9, abs_tol=1e-8):
+            raise EstimateError(f"{path}: field '{element[3 * r + c]}' = {K[r, c]:.6g} must be {want:g}: a pinhole "
+                                "camera matrix is [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (row-major)")
     scale = None
     if "depth_scale" in doc:
         scale = _number(path, f"{prefix}depth_scale", doc["depth_scale"])
         if scale <= 0:
             raise EstimateError(f"{path}: field '{prefix}depth_scale' must be positive, got {scale}")
-    return Camera(K=K, depth_scale=scale, form=form)
+    return Camera(K=K, depth_scale=scale, form=form, path=path, fields=fields)
+
+
+def _label(name: str, quantity: str) -> str:
+    """``'cam_K[0]' (fx)``, or ``'fx'`` when the field is named as the quantity."""
+    return f"'{name}'" if name.rsplit(".", 1)[-1] == quantity else f"'{name}' ({quantity})"
+
+
+def check_intrinsics(cam: Camera, width: int, height: int) -> None:
+    """Refuse intrinsics that no camera taking a ``width`` x ``height`` px image has: a
+    focal length outside :data:`FOCAL_RANGE` image sides, or a principal point more than
+    :data:`PRINCIPAL_MARGIN` image sides outside the image. One line naming the file,
+    the field and its value, and what is expected (else the error would surface at the
+    end of the run, blamed on the mask or the depth)."""
+    K = cam.K
+    where = f"{cam.path}: field" if cam.path is not None else "intrinsics:"
+    lo, hi = FOCAL_RANGE
+    fov = [math.degrees(2 * math.atan(1 / (2 * f))) for f in (hi, lo)]
+    for k, v, side in (("fx", K[0, 0], width), ("fy", K[1, 1], height)):
+        if not lo * side <= v <= hi * side:
+            raise EstimateError(f"{where} {_label(cam.fields.get(k, k), k)} = {v:.6g} px is no focal length for a "
+                                f"{width}x{height} image: expected {lo * side:.6g} to {hi * side:.6g} px (a field of "
+                                f"view of {fov[0]:.2g} to {fov[1]:.0f} degrees; real lenses give about "
+                                f"{0.5 * side:.0f} to {5 * side:.0f})")
+    m = PRINCIPAL_MARGIN
+    for k, v, side in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
+        if not -m * side <= v <= (1 + m) * side:
+            raise EstimateError(f"{where} {_label(cam.fields.get(k, k), k)} = {v:.6g} px puts the principal point far "
+                                f"outside the {width}x{height} image: expected {-m * side:.6g} to {(1 + m) * side:.6g} "
+                                f"px (near the image centre, {side / 2:g})")
+
+
+def check_prior_size(prior: np.ndarray, depth: np.ndarray, K: np.ndarray, diameter: float, *, min_area: int,
+                     min_points: int, what: str) -> None:
+    """Refuse a prior the stages would drop, before any of them runs: a mask ``prior``
+    (H, W) bool of fewer than ``min_area`` pixels (segment_prior's ``min_area``), or
+    with fewer than ``min_points`` object points (scene_features' ``min_points``: the
+    valid depth under it, outliers removed, as the stage counts them; ``depth`` (H, W)
+    mm, ``K`` (3, 3), ``diameter`` mm). ``what`` names the prior (``--mask FILE``,
+    ``--bbox x,y,w,h``) in the message, which names the parameter to change."""
+    from pipeline.scene_side import candidate_points
+
+    area = int(np.count_nonzero(prior))
+    if area < min_area:
+        raise EstimateError(f"{what}: the prior's mask has {area} pixel{'s' * (area != 1)}, below segment_prior.min_area "
+                            f"= {min_area}, so no candidate would be left: give the object's whole mask or box, or "
+                            f"lower the limit with -c segment_prior.min_area={max(area, 1)}")
+    n = len(candidate_points(depth, K, prior, diameter)[0])
+    if n < min_points:
+        raise EstimateError(f"{what}: the prior holds {n} valid depth point{'s' * (n != 1)} of the object, below "
+                            f"scene_features.min_points = {min_points}, so the candidate would be skipped: check the "
+                            "prior, the depth image and --depth-scale"
+                            + (f", or lower the limit with -c scene_features.min_points={n}" if n >= 3 else ""))
 
 
 def _imread(path: Path, what: str, flags: int) -> np.ndarray:

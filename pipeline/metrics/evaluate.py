@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.bop import BopDataset, BopFormatError, Target, read_results_csv
+from pipeline.progress import StepTimer
 from pipeline.store import atomic_path
 
 from .calc_errors import (ErrorCalculator, ErrorParams, ErrorWork, ImageJob, eval_models_info, image_errors_task,
@@ -213,29 +214,49 @@ def _first_bad_row(values: pd.Series, n: int) -> int | None:
     return None
 
 
-def mean_time_per_image(df: pd.DataFrame) -> float:
-    """Mean of the per-image times, -1 if any is negative; warns on disagreeing lines.
+def time_per_image(df: pd.DataFrame) -> tuple[float, list[str]]:
+    """The BOP mean time per image (s) and notes on what in the times is not as BOP wants.
 
-    The toolkit raises when the lines of an image differ by more than 1 ms; here it is a
-    warning and the first line's time is used (the toolkit's choice when it passes).
+    As the BOP toolkit (``scripts/eval_bop19_pose.py``) defines it: the mean over images
+    of each image's time, and -1 (unknown) as soon as any estimate's time is negative
+    (-1 means "not measured"). Notes (one line each, for ``summary["notes"]``):
+
+    - images with both a negative (unknown) and a positive time: BOP requires one time
+      for all estimates of an image; the mean is then -1, as the toolkit gives (it stops
+      at the first negative time);
+    - images whose lines differ by more than 1 ms: the toolkit raises; here the first
+      line's time is used (the toolkit's value when it passes).
     """
     if len(df) == 0:
-        return -1.0
-    if (df["time"] < 0).any():
-        return -1.0
+        return -1.0, []
+    notes: list[str] = []
     g = df.groupby(["scene_id", "im_id"], sort=True)["time"]
-    first = g.first()
-    spread = g.max() - g.min()
+    lo, hi = g.min(), g.max()
+    mixed = lo[(lo < 0) & (hi > 0)]
+    if len(mixed):
+        s, i = mixed.index[0]
+        notes.append(f"results: {len(mixed)} image(s) have both unknown (-1) and measured times for their estimates "
+                     f"(first: scene {s} image {i}); BOP needs one time for all estimates of an image, and any "
+                     "unknown time makes the mean time per image unknown (-1), as in the BOP toolkit")
+    if (df["time"] < 0).any():
+        return -1.0, notes
+    spread = hi - lo
     bad = spread[spread > 0.001]
     if len(bad):
         shown = ", ".join(f"scene {s} image {i}" for s, i in bad.index[:5])
         more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
-        warnings.warn(
-            f"results: the time differs between estimates of the same image for {shown}{more}; "
-            "BOP needs one time per image (using the first line's time)",
-            stacklevel=3,
-        )
-    return float(first.mean())
+        notes.append(f"results: the time differs between estimates of the same image for {shown}{more}; "
+                     "BOP needs one time per image (using the first line's time)")
+    return float(g.first().mean()), notes
+
+
+def mean_time_per_image(df: pd.DataFrame) -> float:
+    """The BOP mean time per image (s; -1 if any time is unknown), as
+    :func:`time_per_image` gives it, its notes issued as warnings."""
+    mean, notes = time_per_image(df)
+    for note in notes:
+        warnings.warn(note, stacklevel=2)
+    return mean
 
 
 def unscored_summary(results_csv: Path, targets: Sequence[Target], why: str) -> dict[str, Any]:
@@ -245,14 +266,18 @@ def unscored_summary(results_csv: Path, targets: Sequence[Target], why: str) -> 
     df = read_results_csv(results_csv)
     # Not scored here, but this is the file to submit: refuse it as scoring would.
     check_rotations(df, results_csv)
+    mean_time, time_notes = time_per_image(df)
     return {
         "status": "no_ground_truth",
         "AR": None, "AR_VSD": None, "AR_MSSD": None, "AR_MSPD": None,
-        "n_targets": int(sum(t.inst_count for t in targets)),
+        # a target listed twice counts once, its last line's inst_count winning, as the
+        # scorer (and BOP's toolkit) count targets
+        "n_targets": int(sum({(t.scene_id, t.im_id, t.obj_id): t.inst_count for t in targets}.values())),
         "n_estimates": int(len(df)),
-        "mean_time_per_image": mean_time_per_image(df),
+        "mean_time_per_image": mean_time,
         "results_file": str(results_csv),
-        "notes": [f"not scored: {why}; submit {results_csv} to the BOP evaluation server (bop.felk.cvut.cz)"],
+        "notes": [f"not scored: {why}; submit {results_csv} to the BOP evaluation server (bop.felk.cvut.cz)",
+                  *time_notes],
     }
 
 
@@ -327,14 +352,10 @@ def _compute_errors(
         for k, v in part.items():
             timing[k] = timing.get(k, 0.0) + v
 
-    bar = None
-    if progress and jobs:
-        from rich.progress import Progress
+    from pipeline.progress import progress_bar
 
-        bar = Progress(transient=True)
-        bar.start()
-        task = bar.add_task("pose errors", total=len(jobs))
-    try:
+    # The images' errors are most of the time of a large file: count, rate and time left.
+    with progress_bar("pose errors (images)", total=len(jobs), enabled=progress and bool(jobs)) as bar:
         if mapper is not None and mapper.kind != "serial" and len(jobs) > 1:
             from functools import partial
 
@@ -342,8 +363,7 @@ def _compute_errors(
             # rows come back in the jobs' order, as from the pool below.
             work = ErrorWork(mapper.per_thread(partial(ErrorWork.make_calculator, str(dataset.root), dataset.split,
                                                        dataset.split_type, params)))
-            for part, part_time in mapper.map(image_errors_task, jobs, work,
-                                              (lambda: bar.advance(task)) if bar is not None else None):
+            for part, part_time in mapper.map(image_errors_task, jobs, work, bar.advance if progress else None):
                 rows.extend(part)
                 add(part_time)
         elif n_workers <= 1 or len(jobs) <= 1:
@@ -351,8 +371,7 @@ def _compute_errors(
             try:
                 for part in calc.errors_of(jobs):
                     rows.extend(part)
-                    if bar is not None:
-                        bar.advance(task)
+                    bar.advance()
             finally:
                 add(calc.timing)
                 calc.close()
@@ -369,11 +388,7 @@ def _compute_errors(
                 for (part, part_time), done in zip(pool.imap(run_jobs, chunks), chunks):
                     rows.extend(part)
                     add(part_time)
-                    if bar is not None:
-                        bar.advance(task, len(done))
-    finally:
-        if bar is not None:
-            bar.stop()
+                    bar.advance(len(done))
     return rows, timing
 
 
@@ -562,6 +577,7 @@ def evaluate(
     max_sym_disc_step: float = DEFAULT_MAX_SYM_DISC_STEP,
     source: str | Path = "results",
     mapper: Any = None,
+    steps: StepTimer | None = None,
 ) -> Scores:
     """Score pose estimates with the BOP19 metrics.
 
@@ -577,19 +593,33 @@ def evaluate(
     mapper: a :class:`pipeline.parallel.Mapper` over threads or a dask cluster that the
       images go to, one task each, instead of ``n_workers`` processes (None or serial:
       ``n_workers`` decides). The errors are the same either way.
+    steps: where the steps before and after the images' errors report (a spinner and
+      their durations, :class:`pipeline.progress.StepTimer`); silent when None. The
+      images themselves have a bar with ``progress``.
 
-    Raises ValueError on a malformed row and :class:`NotARotationError` when an R is not
+    Raises ValueError on a malformed row or a ``vsd_delta`` that is not a finite number
+    > 0 and :class:`NotARotationError` when an R is not
     a rotation within :data:`ROTATION_TOLERANCE` (:func:`check_rotations`).
     """
+    try:
+        delta_ok = math.isfinite(float(vsd_delta)) and float(vsd_delta) > 0
+    except (TypeError, ValueError):
+        delta_ok = False
+    if not delta_ok:  # a NaN would make every VSD error NaN, a negative one every pixel "invisible"
+        raise ValueError(f"vsd_delta must be a finite number of mm > 0, got {vsd_delta!r}")
+    steps = steps or StepTimer(enabled=False)
     t_start = _time.perf_counter()
-    df = _check_results(results, source)
+    with steps(f"check {len(results)} estimates"):
+        df = _check_results(results, source)
     target_list = _targets_list(dataset, targets)
     inst_counts = {(t.scene_id, t.im_id, t.obj_id): t.inst_count for t in target_list}
     unknown = sorted({t.obj_id for t in target_list} - set(eval_models_info(dataset)))
     if unknown:
         raise ValueError(f"{dataset.root}: target object(s) {unknown} have no entry in models_info.json")
 
-    mean_time = mean_time_per_image(df)
+    mean_time, time_notes = time_per_image(df)
+    for note in time_notes:
+        warnings.warn(note, stacklevel=2)
     ests, n_ignored = _select_estimates(df, inst_counts)
     n_in_targets = len(df) - n_ignored
     if n_ignored:
@@ -611,20 +641,22 @@ def evaluate(
     params = ErrorParams(
         vsd_delta=float(vsd_delta), vsd_taus=tuple(taus.tolist()), max_sym_disc_step=max_sym_disc_step, compute_vsd=with_vsd
     )
-    jobs = _image_jobs(dataset, ests)
+    with steps(f"gather the images of {len(ests)} estimates"):
+        jobs = _image_jobs(dataset, ests)
     t_prepare = _time.perf_counter() - t_start
     t_err = _time.perf_counter()
     rows, timing = _compute_errors(dataset, jobs, params, n_workers, progress, mapper)
     t_err = _time.perf_counter() - t_err
     t_match = _time.perf_counter()
-    errors = _errors_frame(rows, taus)
+    with steps("match estimates and compute the recalls"):
+        errors = _errors_frame(rows, taus)
 
-    recalls, per_object, n_targets, valid_df, per_visibility = _score(
-        dataset, target_list, errors, taus, with_vsd, visib_gt_min
-    )
-    errors = errors.merge(valid_df, on=["scene_id", "im_id", "gt_id"], how="left")
-    order = ["scene_id", "im_id", "obj_id", "est_id", "gt_id", "score", "gt_visib_fract", "gt_valid", "mssd", "mspd"]
-    errors = errors[order + [c for c in errors.columns if c not in order]]
+        recalls, per_object, n_targets, valid_df, per_visibility = _score(
+            dataset, target_list, errors, taus, with_vsd, visib_gt_min
+        )
+        errors = errors.merge(valid_df, on=["scene_id", "im_id", "gt_id"], how="left")
+        order = ["scene_id", "im_id", "obj_id", "est_id", "gt_id", "score", "gt_visib_fract", "gt_valid", "mssd", "mspd"]
+        errors = errors[order + [c for c in errors.columns if c not in order]]
     t_match = _time.perf_counter() - t_match
 
     ar_mssd = float(recalls["mssd"].mean())
@@ -648,7 +680,7 @@ def evaluate(
         "eval_seconds": round(_time.perf_counter() - t_start, 3),
         "error_seconds": round(t_err, 3),
         "timing": _timing_summary(timing, t_prepare, t_match, t_err, _workers_used(n_workers, mapper, len(jobs))),
-        "notes": notes,
+        "notes": notes + time_notes,
     }
     return Scores(summary, errors, per_object, recalls, per_visibility)
 
@@ -712,6 +744,7 @@ def score_results_file(
     vsd_delta: float | None = None,
     progress: bool = False,
     mapper: Any = None,
+    steps: StepTimer | None = None,
 ) -> Scores:
     """Score a BOP results CSV against a dataset folder; optionally write the outputs.
 
@@ -721,6 +754,9 @@ def score_results_file(
     out_dir: when given, ``errors.parquet`` and ``scores.json`` are written there,
     each atomically, with the mode the umask gives a new file (0644 under umask 022).
     mapper: where the images' errors are computed (see :func:`evaluate`).
+    progress: a bar over the images' errors; steps: a spinner and the duration of each
+    step before and after them (reading, checking, matching, writing), silent when None.
+    ``scores.json`` is standard JSON: a value that is not finite is written as null.
 
     Raises ``BopFormatError`` naming the file: a malformed line, or
     :class:`NotARotationError` when an estimate's R is not a rotation
@@ -728,10 +764,12 @@ def score_results_file(
     """
     from pipeline.published_files import write_text_published
 
+    steps = steps or StepTimer(enabled=False)
     dataset_root = Path(dataset_root)
     t0 = _time.perf_counter()
     dataset = BopDataset(dataset_root, split, split_type)
-    results = read_results_csv(results_csv)
+    with steps(f"read {Path(results_csv).name}"):
+        results = read_results_csv(results_csv)
     t_read = _time.perf_counter() - t0
     delta = bop_vsd_delta(dataset.name) if vsd_delta is None else float(vsd_delta)
     scores = evaluate(
@@ -743,6 +781,7 @@ def score_results_file(
         progress=progress,
         source=results_csv,
         mapper=mapper,
+        steps=steps,
     )
     scores.summary["results_file"] = str(results_csv)
     scores.summary["dataset"] = str(dataset_root)
@@ -751,12 +790,27 @@ def score_results_file(
     timing["read"] = round(t_read, 3)
     if out_dir is not None:
         out = Path(out_dir)
-        t0 = _time.perf_counter()
-        _atomic_parquet(scores.errors, out / "errors.parquet")
-        # The time to write scores.json itself (milliseconds) cannot be in it.
-        timing["write"] = round(_time.perf_counter() - t0, 3)
-        write_text_published(out / "scores.json", json.dumps(scores.to_json(), indent=1) + "\n")
+        with steps(f"write {out / 'errors.parquet'}, scores.json"):
+            t0 = _time.perf_counter()
+            _atomic_parquet(scores.errors, out / "errors.parquet")
+            # The time to write scores.json itself (milliseconds) cannot be in it.
+            timing["write"] = round(_time.perf_counter() - t0, 3)
+            # allow_nan=False: NaN and Infinity are not JSON; _json_safe made them null already.
+            write_text_published(out / "scores.json",
+                                 json.dumps(_json_safe(scores.to_json()), indent=1, allow_nan=False) + "\n")
     return scores
+
+
+def _json_safe(obj: Any) -> Any:
+    """``obj`` with every float that is not finite (NaN, +-inf) replaced by None, as
+    :func:`_records` does for the tables: ``scores.json`` must be standard JSON."""
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def load_scores(out_dir: Path | str) -> tuple[dict[str, Any], pd.DataFrame]:

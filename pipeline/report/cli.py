@@ -49,7 +49,9 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         images, and the SAR figures."""
         from pipeline.config import ManifestError
         from pipeline.plan import plan_from_json
+        from pipeline.published_files import check_output_file, error_line
         from pipeline.report.html import default_out, write_report
+        from pipeline.store import StorageError
 
         overrides = parse_overrides(config)
         label = "as passed by Snakemake ($FREEZE_RUN_JSON)" if run_json else run_label(overrides)
@@ -65,7 +67,11 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         path = out or default_out(rp, dataset)
         t0 = time.perf_counter()
         try:
+            check_output_file(path, "--out" if out else "")  # a folder given as --out: said before the work
             write_report(rp, dataset, path, samples=samples, run_label=label)
+        except StorageError as e:  # that, or a read-only or full disk: one line naming the file
+            console.print(error_line(e), style="red", markup=False)
+            raise typer.Exit(1)
         except FileNotFoundError as e:
             console.print(f"[red]{e}")
             raise typer.Exit(2)

@@ -8,16 +8,21 @@ the encoder manifests' ``download:`` entries:
 - :mod:`pipeline.weights.catalog`: the manifests' entries, the selection of the files
   to fetch, and the state of each in the weights folder;
 - :mod:`pipeline.weights.fetch`: one file's download (resumable, SHA-256 checked,
-  published atomically) and its errors (:class:`WeightsFetchError`).
+  published atomically) and its errors (:class:`WeightsFetchError`);
+- :mod:`pipeline.weights.formats`: whether a file's first bytes are of the format its
+  name says (a web page or a truncated zip is not a checkpoint), for the fetch, for
+  ``freeze encoders`` and for the loaders (:class:`NotAWeightsFile`).
 
 ``docs/weights.md`` describes the commands and the folder's layout.
 """
 
 from pipeline.weights.catalog import (SOURCES, Listed, Planned, UnknownWeights, entry_status, manifests_with_downloads,
                                       select)
-from pipeline.weights.fetch import (FetchResult, WeightsFetchError, fetch_download, human_size, part_path,
-                                    read_sidecar, sidecar_path, target_path)
+from pipeline.weights.fetch import (TIMEOUT_S, FetchResult, WeightsFetchError, fetch_download, human_size,
+                                    part_meta_path, part_path, read_sidecar, sidecar_path, target_path)
+from pipeline.weights.formats import NotAWeightsFile, check_weights_file, expected_format, sniff
 
-__all__ = ["SOURCES", "FetchResult", "Listed", "Planned", "UnknownWeights", "WeightsFetchError", "entry_status",
-           "fetch_download", "human_size", "manifests_with_downloads", "part_path", "read_sidecar", "select",
-           "sidecar_path", "target_path"]
+__all__ = ["SOURCES", "TIMEOUT_S", "FetchResult", "Listed", "NotAWeightsFile", "Planned", "UnknownWeights",
+           "WeightsFetchError", "check_weights_file", "entry_status", "expected_format", "fetch_download",
+           "human_size", "manifests_with_downloads", "part_meta_path", "part_path", "read_sidecar", "select",
+           "sidecar_path", "sniff", "target_path"]

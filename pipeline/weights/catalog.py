@@ -20,6 +20,7 @@ from pipeline.config import EncoderManifest, ManifestError, WeightDownload
 from pipeline.stand_in import paper_fetch
 from pipeline.store import file_digest
 from pipeline.weights.fetch import judge_file, part_path, pinned_digest, read_sidecar, sidecar_path, target_path
+from pipeline.weights.formats import FORMAT_NAMES, expected_format, sniff
 
 Source = Literal["official", "hf"]
 SOURCES: tuple[Source, ...] = ("official", "hf")
@@ -115,7 +116,7 @@ def select(names: Iterable[str], *, fetch_all: bool = False, source: Source = "o
     return list(planned.values()), notes
 
 
-Status = Literal["missing", "partial", "present", "verified", "mismatch"]
+Status = Literal["missing", "partial", "present", "verified", "mismatch", "invalid"]
 
 
 def entry_status(download: WeightDownload, weights_dir: Path, manifest: str | os.PathLike = "",
@@ -125,7 +126,8 @@ def entry_status(download: WeightDownload, weights_dir: Path, manifest: str | os
     status: ``missing`` (no file), ``partial`` (only an interrupted download's ``.part``),
     ``present`` (a file without a recorded digest, e.g. placed by hand, that agrees with
     the pinned one if any: ``fetch`` records it), ``verified`` (the file agrees with its
-    recorded digest and the pinned one), ``mismatch`` (it disagrees with one of them).
+    recorded digest and the pinned one), ``mismatch`` (it disagrees with one of them),
+    ``invalid`` (its first bytes are not of its format: a web page saved as the file).
     bytes: the file's size, or the manifest's approximate size when it is missing.
     Present files are hashed (about 1 GB/s); ``digests`` caches them across calls by
     (path, size, mtime), as manifests share files.
@@ -154,4 +156,8 @@ def entry_status(download: WeightDownload, weights_dir: Path, manifest: str | os
         "unrecorded": {"status": "present", "note": "no recorded digest yet (fetch records it)"},
         "verified": {"status": "verified"},
     }[verdict])
+    fmt = expected_format(final)
+    problem = sniff(final, fmt) if fmt is not None and row["status"] != "mismatch" else None
+    if problem is not None:
+        row.update(status="invalid", note=f"{problem}, not a {FORMAT_NAMES[fmt]}: delete it and fetch it again")
     return row
