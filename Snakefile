@@ -1,5 +1,5 @@
 # FreeZe pipeline. Main job: `snakemake --cores 2 bop_all`.
-# Output paths are computed from cache keys at DAG time (pipeline/plan.py), so a change
+# Output paths are computed from cache keys at DAG time (pipeline/workflow/plan.py), so a change
 # of parameters, encoders or stage code versions builds new artifacts beside the old
 # ones and reruns only the stages that depend on the change.
 import os
@@ -10,12 +10,12 @@ from snakemake.utils import min_version
 
 min_version("9.0")
 
-from pipeline.cli_common import USER_ERRORS
-from pipeline.config import ManifestError, load_run
-from pipeline.plan import RunPlan
-from pipeline.run_cli import planned_manifests
-from pipeline.stage_graph import STAGES
-from pipeline.threads import ENV_VARS
+from pipeline.commands.common import USER_ERRORS
+from pipeline.common.config import ManifestError, load_run
+from pipeline.workflow.plan import RunPlan
+from pipeline.commands.run import planned_manifests
+from pipeline.workflow.stage_graph import STAGES
+from pipeline.common.threads import ENV_VARS
 
 try:
     RUN = load_run(config)      # manifests/runs/default.yaml + --config overrides
@@ -69,9 +69,9 @@ def shell_word(value):
 def stage_shell(stage):
     """Shell command of a stage job: the same entry point as `freeze stage`, kept to the
     rule's threads (the variables for the numeric libraries that read them at start-up;
-    `--threads` for torch and OpenCV, see pipeline/threads.py)."""
+    `--threads` for torch and OpenCV, see pipeline/common/threads.py)."""
     limits = " ".join(f"{v}={{threads}}" for v in ENV_VARS)
-    return (f"{limits} {shell_word(PY)} -m pipeline.cli stage {shell_word(stage)} --dataset {{wildcards.ds:q}} "
+    return (f"{limits} {shell_word(PY)} -m pipeline.commands.cli stage {shell_word(stage)} --dataset {{wildcards.ds:q}} "
             "--item {params.item:q} --expect-sig {wildcards.sig:q} --threads {threads} > {log:q} 2>&1")
 
 
@@ -84,7 +84,7 @@ def stage_plan(wc, stage):
 
 def stage_inputs(stage, kind):
     """Input function of the rule running ``stage`` for items of ``kind``: the manifests
-    of everything the stage's declaration (pipeline/stage_graph.py) says it reads."""
+    of everything the stage's declaration (pipeline/workflow/stage_graph.py) says it reads."""
     def inputs(wc):
         item = {"obj": lambda: f"obj_{wc.obj}", "scene": lambda: f"scene_{wc.scene}"}.get(kind, lambda: kind)()
         return [str(p) for p in PLAN[wc.ds].input_manifests(stage, item)]
@@ -137,21 +137,21 @@ rule bop_all:
     log:
         os.path.join(LOGS, "bop_all.log"),
     shell:
-        f"{shell_word(PY)} -m pipeline.cli table --out {{params.table:q}} --csv-dir {{params.results:q}} > {{log:q}} 2>&1"
-        + "".join(f" && {shell_word(PY)} -m pipeline.cli report --dataset {shell_word(ds)} "
+        f"{shell_word(PY)} -m pipeline.commands.cli table --out {{params.table:q}} --csv-dir {{params.results:q}} > {{log:q}} 2>&1"
+        + "".join(f" && {shell_word(PY)} -m pipeline.commands.cli report --dataset {shell_word(ds)} "
                   f"--out {shell_word(os.path.join(RESULTS, f'report_{ds}.html'))} >> {{log:q}} 2>&1" for ds in DATASETS)
 
 
 onstart:
     # A SLURM profile on a machine without `sbatch`: one line before any job, not a
-    # shell error per job (pipeline/cluster_submit.py).
-    from pipeline.cluster_submit import missing_submitter
+    # shell error per job (pipeline/workflow/cluster_submit.py).
+    from pipeline.workflow.cluster_submit import missing_submitter
 
     _plugin = workflow.executor_plugin
     _why = missing_submitter(_plugin.name if _plugin is not None else None,
                              getattr(workflow.executor_settings, "submit_cmd", None))
     if not _why:  # a status command in a path with a space or a `;`, run unquoted by the executor
-        from pipeline.cluster_submit import unquoted_status_command
+        from pipeline.workflow.cluster_submit import unquoted_status_command
 
         _why = unquoted_status_command(_plugin.name if _plugin is not None else None,
                                        getattr(workflow.executor_settings, "status_cmd", None))
@@ -161,7 +161,7 @@ onstart:
     # Encoders standing in for the paper's: one line per run. Here, not at the top of the
     # file, which every cluster job parses again (jobs run without hooks); `freeze run`
     # prints it itself, with its own options, and sets FREEZE_STAND_IN_SHOWN.
-    from pipeline.stand_in import stand_in_notice
+    from pipeline.common.stand_in import stand_in_notice
 
     _notice = stand_in_notice(RUN.geometric_encoder, RUN.visual_encoder)
     if _notice and not os.environ.get("FREEZE_STAND_IN_SHOWN"):

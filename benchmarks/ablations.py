@@ -62,9 +62,9 @@ def run_pair(dataset: str, geometric: str, visual: str, *, cores: int = 2, weigh
 
 def run_config(config: dict[str, str], label: str, *, cores: int = 2, cache: Path | None = None) -> PairResult:
     """Run ``bop_all --config`` with ``config`` (one dataset) and read its scores and job times."""
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
-    from pipeline.store import read_manifest
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
+    from pipeline.common.store import read_manifest
 
     dataset = config["datasets"]
     env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}

@@ -4,7 +4,7 @@ time it implies for the real datasets (run by hand).
     .venv/bin/python benchmarks/bop_layouts.py [--datasets lmo,itodd] [--cores 1] [--work DIR]
 
 For each dataset, a tiny synthetic dataset is written in its exact layout and image
-size (``pipeline/synth/layouts.py``: 3 objects, 1 scene, 2 images) and ``bop_all``
+size (``pipeline/evaluation/synth/layouts.py``: 3 objects, 1 scene, 2 images) and ``bop_all``
 runs on it with the default run manifest. From the artifact manifests:
 
 - per object: the summed job time of render_templates + symmetries + model_features,
@@ -55,10 +55,10 @@ def measure(name: str, work: Path, cores: int) -> dict:
     """Write the layout of ``name`` under ``work/bop`` and run bop_all on it; the costs."""
     import os
 
-    from pipeline import config as cfg
-    from pipeline.plan import RunPlan
-    from pipeline.store import read_manifest
-    from pipeline.synth.layouts import write_layout
+    from pipeline.common import config as cfg
+    from pipeline.workflow.plan import RunPlan
+    from pipeline.common.store import read_manifest
+    from pipeline.evaluation.synth.layouts import write_layout
 
     bop_root = work / "bop"
     if not (bop_root / name).exists():
@@ -102,8 +102,8 @@ def main() -> None:
     args = ap.parse_args()
     counts = dict(BOP19)
     if args.counts_from:
-        from pipeline.config import load_dataset_manifest
-        from pipeline.datasets_check import check_dataset
+        from pipeline.common.config import load_dataset_manifest
+        from pipeline.commands.datasets import check_dataset
 
         for name in CORE:
             if (args.counts_from / name).is_dir():
@@ -112,7 +112,7 @@ def main() -> None:
     if args.fresh:
         shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True, exist_ok=True)
-    from pipeline.config import SegmentPriorParams
+    from pipeline.common.config import SegmentPriorParams
 
     top_k = SegmentPriorParams().top_k
     import json

@@ -10,7 +10,7 @@ two feature sets: ``fused`` (FPFH + colortex through the per-object PCA, the pap
 fusion) and ``geometric`` (FPFH alone). Both backends get exactly the same points and
 features of a case (computed once, cached in ``--cases``):
 
-- ``ours``: :func:`pipeline.registration.ransac.ransac_hypotheses` as
+- ``ours``: :func:`pipeline.method.registration.ransac.ransac_hypotheses` as
   ``scene_side.coarse_hypotheses`` calls it (inlier 0.05 d, 50000 iterations at most,
   confidence 0.999, no mutual filter, k = 3 hypotheses, NMS 30 deg / 0.2 d), including
   its feature matching, refits and scores; its first hypothesis is the pose;
@@ -57,11 +57,11 @@ def build_cases(views: int, cache: Path) -> dict[str, Any]:
     from registration_scenes import OBJECT_KINDS, SCENE_WH, harden_view, make_object, random_scene_pose, \
         render_scene, scene_inputs
 
-    from pipeline.encoders.colortex import ColorTexEncoder
-    from pipeline.encoders.fpfh import FpfhEncoder
-    from pipeline.encoders.lifting import lift_scene_visual_features, mask_to_bbox
-    from pipeline.registration.fusion import apply_pca, fuse
-    from pipeline.render.renderer import Light, Lighting, Renderer
+    from pipeline.method.encoders.colortex import ColorTexEncoder
+    from pipeline.method.encoders.fpfh import FpfhEncoder
+    from pipeline.method.encoders.lifting import lift_scene_visual_features, mask_to_bbox
+    from pipeline.method.registration.fusion import apply_pca, fuse
+    from pipeline.method.render.renderer import Light, Lighting, Renderer
 
     enc, vis = FpfhEncoder(radii=(0.3, 0.4)), ColorTexEncoder()
     scene_r, tmpl_r = Renderer(*SCENE_WH), Renderer(vis.input_size, vis.input_size)
@@ -106,7 +106,7 @@ def worker(cases_path: Path, threads: int, repeats: int, out: Path, baseline: Pa
     import numpy as np
     import open3d as o3d
 
-    from pipeline.registration.ransac import RansacParams, ransac_hypotheses
+    from pipeline.method.registration.ransac import RansacParams, ransac_hypotheses
 
     o3d.utility.set_max_threads(threads)
     reg = o3d.pipelines.registration

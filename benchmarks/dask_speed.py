@@ -89,7 +89,7 @@ def _heavy_results(plan, scale: int, work: Path) -> tuple[Path, Path, Path, int]
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from score_speed import build_estimates, write_all_targets
 
-    from pipeline.bop import write_results_csv
+    from pipeline.formats.bop import write_results_csv
 
     work.mkdir(parents=True, exist_ok=True)
     rows, counts = build_estimates(plan.root, scale)
@@ -117,10 +117,10 @@ def main() -> None:
     import stages.refine
     import stages.register
     import stages.score
-    from pipeline import config as cfg
-    from pipeline.metrics import score_results_file
-    from pipeline.parallel import job_mapper
-    from pipeline.plan import RunPlan
+    from pipeline.common import config as cfg
+    from pipeline.evaluation.metrics import score_results_file
+    from pipeline.common.parallel import job_mapper
+    from pipeline.workflow.plan import RunPlan
     from stages import run_stage
 
     modules = (stages.register, stages.refine, stages.score)

@@ -39,8 +39,8 @@ import numpy as np
 import torch
 import trimesh
 
-from pipeline.encoders.registry import EncoderSpec, build_encoder
-from pipeline.geometry.sampling import sample_surface
+from pipeline.method.encoders.registry import EncoderSpec, build_encoder
+from pipeline.method.geometry.sampling import sample_surface
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -56,7 +56,7 @@ def _median_time(fn, repeat: int) -> float:
 
 
 def _gedi_weights(folder: Path) -> Path:
-    from pipeline.encoders.gedi import save_random_checkpoint
+    from pipeline.method.encoders.gedi import save_random_checkpoint
 
     return save_random_checkpoint(folder / "chkpt.tar")
 
@@ -64,7 +64,7 @@ def _gedi_weights(folder: Path) -> Path:
 def _dinov2_weights(folder: Path, model: str, name: str | None = None) -> Path:
     from transformers import Dinov2Model
 
-    from pipeline.encoders.dinov2 import hf_config_for
+    from pipeline.method.encoders.dinov2 import hf_config_for
 
     torch.manual_seed(0)
     out = folder / (name or f"dinov2-{model}")
@@ -76,7 +76,7 @@ def _random_weights_dir(folder: Path, models: tuple[str, ...] = ("vits14", "vitb
     """A weights folder with random GeDi and DINOv2 weights (``models``, default ViT-S/B)
     where the default manifests look for them (gedi/chkpt.tar; dinov2-small, dinov2-base...
     in HF layout)."""
-    from pipeline.encoders.dinov2 import hf_dirname
+    from pipeline.method.encoders.dinov2 import hf_dirname
 
     (folder / "gedi").mkdir(parents=True, exist_ok=True)
     _gedi_weights(folder / "gedi")
@@ -88,9 +88,9 @@ def _random_weights_dir(folder: Path, models: tuple[str, ...] = ("vits14", "vitb
 def _templates(obj_id: int):
     """A synthetic object and its 42 template views (rgb, depth, K, R, t), rendered as the
     render_templates stage renders them."""
-    from pipeline.render import Renderer
-    from pipeline.render.templates import render_templates, template_views
-    from pipeline.synth.objects import build_object
+    from pipeline.method.render import Renderer
+    from pipeline.method.render.templates import render_templates, template_views
+    from pipeline.evaluation.synth.objects import build_object
 
     obj = build_object(obj_id)
     views = template_views(42, obj.diameter, 224)
@@ -103,8 +103,8 @@ def _templates(obj_id: int):
 def precision_check(repeat: int) -> str:
     from scipy.spatial import cKDTree
 
-    from pipeline.encoders.lifting import lift_model_visual_features
-    from pipeline.registration.fusion import apply_pca, fit_pca, l2_normalise
+    from pipeline.method.encoders.lifting import lift_model_visual_features
+    from pipeline.method.registration.fusion import apply_pca, fit_pca, l2_normalise
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from ablations import run_pair
@@ -158,7 +158,7 @@ def pipeline_pairs(pairs: list[str]) -> str:
              "artifacts' `_manifest.json` (`peak_rss_mb`).", "",
              "| geometric + visual | onboarding s/object | scene-side s/target | run wall time (s) "
              "| peak RSS model side (GB) | peak RSS scene side (GB) |", "|---|---|---|---|---|---|"]
-    from pipeline.config import load_encoder_manifest
+    from pipeline.common.config import load_encoder_manifest
 
     # the DINOv2 sizes the pairs use (dinov2-vitl14 -> vitl14)
     models = tuple(sorted({str(load_encoder_manifest(p.split("+")[1]).params["model"]) for p in pairs

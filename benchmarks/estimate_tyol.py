@@ -43,14 +43,14 @@ def main() -> None:
 
     from scipy.spatial import cKDTree
 
-    from pipeline import config as cfg
-    from pipeline.bop import load_detections
-    from pipeline.bop.dataset import save_mask_png
-    from pipeline.geometry.depth import lift_depth
-    from pipeline.geometry.crops import mask_to_bbox
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.transforms import rotation_angle_deg
-    from pipeline.metrics.pose_errors import mssd
+    from pipeline.common import config as cfg
+    from pipeline.formats.bop import load_detections
+    from pipeline.formats.bop.dataset import save_mask_png
+    from pipeline.method.geometry.depth import lift_depth
+    from pipeline.method.geometry.crops import mask_to_bbox
+    from pipeline.method.geometry.sampling import sample_surface
+    from pipeline.method.geometry.transforms import rotation_angle_deg
+    from pipeline.evaluation.metrics.pose_errors import mssd
 
     ds, scene_id, im_id, gt, diameter = tyol_frame()
     mask = ds.load_mask(scene_id, im_id, 0)

@@ -31,9 +31,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "fingerprint.md")
     args = ap.parse_args()
 
-    from pipeline import config as cfg
-    from pipeline.file_hashes import files_under
-    from pipeline.plan import RunPlan
+    from pipeline.common import config as cfg
+    from pipeline.common.file_hashes import files_under
+    from pipeline.workflow.plan import RunPlan
     from stages import run_stage
 
     plan = RunPlan(cfg.load_run({"datasets": args.dataset}))[args.dataset]

@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.encoders.gedi import (  # noqa: E402
+from pipeline.method.encoders.gedi import (  # noqa: E402
     GEDI_DIM,
     GeDiEncoder,
     GeDiNet,
@@ -61,8 +61,8 @@ from pipeline.encoders.gedi import (  # noqa: E402
     quaternion_to_matrix,
     save_random_checkpoint,
 )
-from pipeline.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
-from pipeline.geometry.sampling import sample_surface  # noqa: E402
+from pipeline.method.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
+from pipeline.method.geometry.sampling import sample_surface  # noqa: E402
 
 
 class V1:
@@ -184,7 +184,7 @@ def descriptors(enc: GeDiEncoder, path: str, pts: np.ndarray, diameter: float, c
 
 def calibrated_weights(folder: Path) -> Path:
     """Random GeDi weights in the official layout, batch-norm statistics calibrated on
-    random curved patches (:func:`pipeline.encoders.gedi.save_random_checkpoint`)."""
+    random curved patches (:func:`pipeline.method.encoders.gedi.save_random_checkpoint`)."""
     return save_random_checkpoint(folder / "chkpt.tar", seed=0)
 
 
@@ -234,7 +234,7 @@ def ab_table(enc: GeDiEncoder, cloud_sets: dict[str, np.ndarray], diameter: floa
 def profile_paths(enc: GeDiEncoder, pts: np.ndarray, diameter: float, count: int) -> str:
     """cProfile of one run of each path: cumulative seconds of the functions that make up
     the work (a function, or the name of built-ins to add up), as a markdown section."""
-    from pipeline.encoders import gedi, gedi_ops
+    from pipeline.method.encoders import gedi, gedi_ops
 
     parts = {
         "v1": [("neighbour search (cKDTree)", "query_ball_point"), ("random draws", GeDiEncoder._draw),

@@ -33,15 +33,15 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
+from pipeline.method.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
 
 THRESHOLD = 0.99
 
 
 def gedi_weights(path: Path, seed: int = 0) -> Path:
     """Random GeDi weights as the official checkpoint, batch-norm statistics calibrated
-    (:func:`pipeline.encoders.gedi.save_random_checkpoint`)."""
-    from pipeline.encoders.gedi import save_random_checkpoint
+    (:func:`pipeline.method.encoders.gedi.save_random_checkpoint`)."""
+    from pipeline.method.encoders.gedi import save_random_checkpoint
 
     return save_random_checkpoint(path, seed=seed)
 
@@ -52,7 +52,7 @@ def dinov2_official_weights(path: Path, model: str = "vits14", seed: int = 0, de
     tokens of the ``_reg`` variants), drawn on ``device`` (ViT-g/14 has 1.1 B
     parameters) and saved from the CPU. The encoder loads it strictly, so a wrong name
     or shape fails there."""
-    from pipeline.encoders.dinov2 import MODEL_CONFIGS, NUM_REGISTER_TOKENS, PATCH_SIZE, parse_model_name
+    from pipeline.method.encoders.dinov2 import MODEL_CONFIGS, NUM_REGISTER_TOKENS, PATCH_SIZE, parse_model_name
 
     arch, reg = parse_model_name(model)
     cfg = MODEL_CONFIGS[arch]
@@ -96,7 +96,7 @@ def dinov2_official_weights(path: Path, model: str = "vits14", seed: int = 0, de
 def make_weights(folder: Path) -> Path:
     """The weights folder the default manifests ``gedi`` and ``dinov2-vits14`` load; a
     file already there is kept (a folder of real weights is used as it is)."""
-    from pipeline.encoders.dinov2 import official_filename
+    from pipeline.method.encoders.dinov2 import official_filename
 
     if not (folder / "gedi" / "chkpt.tar").exists():
         gedi_weights(folder / "gedi" / "chkpt.tar")

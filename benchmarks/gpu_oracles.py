@@ -52,7 +52,7 @@ def _token_cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def dinov2_rows(official_dir: Path, device: str, tmp: Path, reduced: bool = False) -> tuple[list[str], bool]:
     import warnings
 
-    from pipeline.encoders import dinov2 as d2
+    from pipeline.method.encoders import dinov2 as d2
     from test_dinov2_official import HUB_FUNCTIONS, _depth, _images, _randomise
 
     sys.path.insert(0, str(official_dir))
@@ -110,7 +110,7 @@ def gedi_rows(device: str, tmp: Path) -> tuple[list[str], bool]:
     from scipy.spatial import cKDTree
     from test_gedi_official import _model_cloud, _OraclePath, _scene_cloud
 
-    from pipeline.encoders.gedi import GeDiEncoder, save_random_checkpoint
+    from pipeline.method.encoders.gedi import GeDiEncoder, save_random_checkpoint
 
     weights = save_random_checkpoint(tmp / "chkpt.tar", seed=0)
     model = _model_cloud()

@@ -9,17 +9,17 @@ scene points are the instance's candidate points as ``scene_features`` lifts the
 its ground-truth visible mask (outliers removed), M = 1000 of them sampled as the
 pipeline does. Variants:
 
-- ``hypothesis-icp``: :func:`pipeline.geometry.icp.refine_icp` as the refine stage calls
+- ``hypothesis-icp``: :func:`pipeline.method.refinement.icp.refine_icp` as the refine stage calls
   it on every hypothesis (5000 points sampled on the model with their face normals, the
   M scene points, point-to-plane, correspondence distance 0.1, 0.05, 0.025 d, 30
   iterations each);
 - ``pipeline``: ``hypothesis-icp`` followed by the fine ICP that refine runs on each
-  candidate's chosen pose (:class:`pipeline.scene_side.FineIcp`, for objects without
+  candidate's chosen pose (:class:`pipeline.method.scene_side.FineIcp`, for objects without
   shape symmetries): 2000 of the candidate points against 20000 model surface samples,
   same schedule;
 - ``open3d-hypothesis-icp``, ``open3d-pipeline``: the same two with Open3D's
   ``registration_icp`` (point-to-plane, its default convergence test, 30 iterations per
-  threshold), which the pipeline used before its own ICP (:mod:`pipeline.geometry.icp`);
+  threshold), which the pipeline used before its own ICP (:mod:`pipeline.method.refinement.icp`);
 - ``dense-scene``: the same with every candidate point instead of M;
 - ``tukey``: the same with a Tukey robust kernel (k = the current correspondence distance / 2);
 - ``dense-model``: the model's own vertices with their vertex normals (Open3D's ICP "on
@@ -51,8 +51,8 @@ sys.path.insert(0, str(ROOT))
 
 def dataset_root(name: str) -> Path:
     """The built semi-real dataset ``name`` (the synth stage is run here if needed)."""
-    from pipeline import config as cfg
-    from pipeline.plan import RunPlan
+    from pipeline.common import config as cfg
+    from pipeline.workflow.plan import RunPlan
     from stages import run_stage
 
     rp = RunPlan(cfg.load_run({"datasets": name}))
@@ -69,8 +69,8 @@ def icp_variants(model_mesh, diameter: float, seed: int):
     """name -> function(scene_all, scene_m, R0, t0) -> (R, t)."""
     import open3d as o3d
 
-    from pipeline.geometry.icp import IcpModel, refine_icp
-    from pipeline.geometry.sampling import sample_surface
+    from pipeline.method.refinement.icp import IcpModel, refine_icp
+    from pipeline.method.geometry.sampling import sample_surface
 
     pts, nrm = sample_surface(model_mesh, 5000, seed=seed)
     pts20, nrm20 = sample_surface(model_mesh, 20000, seed=seed)
@@ -84,7 +84,7 @@ def icp_variants(model_mesh, diameter: float, seed: int):
         return r.R, r.t
 
     def ours(points_all, points_m, R0, t0):
-        from pipeline.scene_side import sample_candidate
+        from pipeline.method.scene_side import sample_candidate
 
         r = refine_icp(model5k, None, points_m, R0, t0, diameter)
         fine = points_all[sample_candidate(len(points_all), 2000, 0)]
@@ -95,7 +95,7 @@ def icp_variants(model_mesh, diameter: float, seed: int):
         return _o3d(pts, nrm, points_m, R0, t0, kernel=False)
 
     def open3d_pipeline(points_all, points_m, R0, t0):
-        from pipeline.scene_side import sample_candidate
+        from pipeline.method.scene_side import sample_candidate
 
         R, t = _o3d(pts, nrm, points_m, R0, t0, kernel=False)
         return _o3d(pts20, nrm20, points_all[sample_candidate(len(points_all), 2000, 0)], R, t, kernel=False)
@@ -105,7 +105,7 @@ def icp_variants(model_mesh, diameter: float, seed: int):
         return r.R, r.t
 
     def _o3d(target_pts, target_nrm, source, R0, t0, kernel):
-        from pipeline.geometry.transforms import invert, matrix_to_rt, rt_to_matrix
+        from pipeline.method.geometry.transforms import invert, matrix_to_rt, rt_to_matrix
 
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(target_pts, np.float64)))
         target.normals = o3d.utility.Vector3dVector(np.asarray(target_nrm, np.float64))
@@ -140,7 +140,7 @@ def icp_variants(model_mesh, diameter: float, seed: int):
 
     def fine(n_scene):
         def run(points_all, points_m, R0, t0):
-            from pipeline.scene_side import sample_candidate
+            from pipeline.method.scene_side import sample_candidate
 
             dense = points_all[sample_candidate(len(points_all), n_scene, 0)]
             r = refine_icp(pts20, nrm20, dense, R0, t0, diameter)
@@ -152,7 +152,7 @@ def icp_variants(model_mesh, diameter: float, seed: int):
         return r.R, r.t
 
     def gicp(points_all, points_m, R0, t0):
-        from pipeline.geometry.transforms import invert, matrix_to_rt, rt_to_matrix
+        from pipeline.method.geometry.transforms import invert, matrix_to_rt, rt_to_matrix
 
         reg = o3d.pipelines.registration
         target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(pts, np.float64)))
@@ -181,11 +181,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "icp.md")
     args = ap.parse_args()
 
-    from pipeline.bop import BopDataset
-    from pipeline.geometry.transforms import perturb_pose, rotation_angle_deg
-    from pipeline.metrics.bop_symmetries import model_symmetries
-    from pipeline.metrics.pose_errors import mssd
-    from pipeline.scene_side import candidate_points, sample_candidate
+    from pipeline.formats.bop import BopDataset
+    from pipeline.method.geometry.transforms import perturb_pose, rotation_angle_deg
+    from pipeline.evaluation.metrics.bop_symmetries import model_symmetries
+    from pipeline.evaluation.metrics.pose_errors import mssd
+    from pipeline.method.scene_side import candidate_points, sample_candidate
 
     starts = [tuple(float(v) for v in p.split(":")) for p in args.perturb.split(",")]
     lines = ["# ICP from known starts", "", f"`benchmarks/icp.py {' '.join(sys.argv[1:])}`", ""]

@@ -46,9 +46,9 @@ def ensure_weights(folder: Path, geometric: str, visual: str, device: str) -> li
     look for them, unless a file is there already; the files written."""
     from gpu_agreement import dinov2_official_weights
 
-    from pipeline.config import load_encoder_manifest
-    from pipeline.encoders.dinov2 import find_weights, official_filename
-    from pipeline.encoders.gedi import DEFAULT_WEIGHTS, save_random_checkpoint
+    from pipeline.common.config import load_encoder_manifest
+    from pipeline.method.encoders.dinov2 import find_weights, official_filename
+    from pipeline.method.encoders.gedi import DEFAULT_WEIGHTS, save_random_checkpoint
 
     written = []
     for name in (geometric, visual):
@@ -67,8 +67,8 @@ def ensure_weights(folder: Path, geometric: str, visual: str, device: str) -> li
 
 def items_of(plan, stage: str) -> list[str]:
     """Every item ``stage`` runs for in the dataset plan, in the order of its item kinds."""
-    from pipeline.plan import obj_item
-    from pipeline.stage_graph import STAGES
+    from pipeline.workflow.plan import obj_item
+    from pipeline.workflow.stage_graph import STAGES
 
     out: list[str] = []
     for kind in STAGES[stage].items:
@@ -81,10 +81,10 @@ def run(dataset: str, geometric: str, visual: str, device: str, weights: Path, c
     """Run every stage of ``dataset`` (skipping those already in ``cache``) and return
     the measurements (see the module doc)."""
     os.environ["FREEZE_CACHE"] = str(cache)
-    from pipeline import store
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan, build_encoders, encoder_runtime
-    from pipeline.stage_graph import STAGES
+    from pipeline.common import store
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan, build_encoders, encoder_runtime
+    from pipeline.workflow.stage_graph import STAGES
     from stages import run_stage
 
     config = {"datasets": dataset, "geometric": geometric, "visual": visual, "device": device,

@@ -34,9 +34,9 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true", help="delete the dataset's cache (and the AR table) first")
     args = ap.parse_args()
 
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
-    from pipeline.store import read_manifest
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
+    from pipeline.common.store import read_manifest
 
     rp = RunPlan(load_run({"datasets": args.dataset}))
     if args.fresh:

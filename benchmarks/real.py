@@ -40,11 +40,11 @@ RIGHT_MSSD = 0.1
 
 def tyol_frame():
     """The TYO-L dataset's one frame, built by its synth stage when needed: (reader
-    (:class:`pipeline.bop.BopDataset`), scene id, image id, ground-truth pose
-    (:class:`pipeline.bop.GtPose`), diameter mm). Stops with the reason when
+    (:class:`pipeline.formats.bop.BopDataset`), scene id, image id, ground-truth pose
+    (:class:`pipeline.formats.bop.GtPose`), diameter mm). Stops with the reason when
     ../shared is absent."""
-    from pipeline import config as cfg
-    from pipeline.plan import RunPlan
+    from pipeline.common import config as cfg
+    from pipeline.workflow.plan import RunPlan
     from stages import run_stage
 
     rp = RunPlan(cfg.load_run({"datasets": "tyol"}))
@@ -72,10 +72,10 @@ def seed_manifest(folder: Path, seed: int) -> Path:
 def single_pose_errors(config: dict[str, str]) -> dict[str, float]:
     """Rotation (deg), translation (mm) and MSSD (diameters) of the estimate of a
     dataset's single target, from the refine and score artifacts of ``config``'s plan."""
-    from pipeline.config import load_run
-    from pipeline.geometry.transforms import rotation_angle_deg
-    from pipeline.plan import RunPlan
-    from pipeline.store import read_table
+    from pipeline.common.config import load_run
+    from pipeline.method.geometry.transforms import rotation_angle_deg
+    from pipeline.workflow.plan import RunPlan
+    from pipeline.common.store import read_table
 
     plan = RunPlan(load_run(config))[config["datasets"]]
     bop = plan.bop()
@@ -145,8 +145,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "real.md")
     args = ap.parse_args()
 
-    from pipeline import config as cfg
-    from pipeline.plan import RunPlan
+    from pipeline.common import config as cfg
+    from pipeline.workflow.plan import RunPlan
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

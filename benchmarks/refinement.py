@@ -45,9 +45,9 @@ def group_ar(per_object: list[dict], ids: set[int]) -> float:
 
 def sar_outcomes(plan) -> dict[str, int]:
     """How SAR's changes compare with the ground truth (see the module docstring)."""
-    from pipeline.geometry.transforms import rotation_angle_deg
-    from pipeline.plan import parse_item
-    from pipeline.store import read_table
+    from pipeline.method.geometry.transforms import rotation_angle_deg
+    from pipeline.workflow.plan import parse_item
+    from pipeline.common.store import read_table
 
     bop = plan.bop()
     infos = bop.models_info()
@@ -86,9 +86,9 @@ def ranking_outcomes(plan) -> tuple[int, dict[str, float]]:
     (MSSD to the nearest ground-truth instance, declared symmetries included, below 0.2
     of the diameter; model_eval vertices, every 7th), how often each ranking puts a
     correct one first: (number of such targets, {ranking: fraction})."""
-    from pipeline.metrics.bop_symmetries import model_symmetries
-    from pipeline.plan import parse_item
-    from pipeline.store import read_table
+    from pipeline.evaluation.metrics.bop_symmetries import model_symmetries
+    from pipeline.workflow.plan import parse_item
+    from pipeline.common.store import read_table
 
     bop = plan.bop()
     infos = bop.models_info()
@@ -123,8 +123,8 @@ def main() -> None:
     ap.add_argument("--cores", type=int, default=2)
     args = ap.parse_args()
 
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     lines = [f"# Refinement and selection on `{args.dataset}`", "",
              f"`benchmarks/refinement.py {' '.join(sys.argv[1:])}`", "",

@@ -8,7 +8,7 @@ colortex visual features. The objects and views come from tests/registration_sce
 (the fixtures of tests/test_registration_e2e.py and tests/test_geometry_icp.py): each
 view renders the object under a random pose in a 640x480 LM-like camera. Model-side
 features are computed once per object, the visual ones lifted from templates rendered
-as the render_templates stage renders them (pipeline.render.templates, default views).
+as the render_templates stage renders them (pipeline.method.render.templates, default views).
 
 ``--hard`` lights the scene differently from the templates, adds 1 mm depth noise and
 hides 20-40 % of the object behind a grey occluder.
@@ -34,21 +34,21 @@ sys.path.insert(0, str(ROOT / "tests"))
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from pipeline.encoders.colortex import ColorTexEncoder  # noqa: E402
-from pipeline.encoders.fpfh import FpfhEncoder  # noqa: E402
-from pipeline.encoders.lifting import (  # noqa: E402
+from pipeline.method.encoders.colortex import ColorTexEncoder  # noqa: E402
+from pipeline.method.encoders.fpfh import FpfhEncoder  # noqa: E402
+from pipeline.method.encoders.lifting import (  # noqa: E402
     lift_model_visual_features,
     lift_scene_visual_features,
     mask_to_bbox,
 )
-from pipeline.encoders.registry import VisualEncoder  # noqa: E402
-from pipeline.geometry.extent import point_cloud_diameter  # noqa: E402
-from pipeline.geometry.icp import refine_icp  # noqa: E402
-from pipeline.geometry.sampling import sample_surface  # noqa: E402
-from pipeline.geometry.transforms import rotation_angle_deg  # noqa: E402
-from pipeline.registration.fusion import PcaBasis, apply_pca, fit_pca, fuse  # noqa: E402
-from pipeline.registration.ransac import RansacParams, ransac_align  # noqa: E402
-from pipeline.render.templates import render_templates, template_views  # noqa: E402
+from pipeline.method.encoders.registry import VisualEncoder  # noqa: E402
+from pipeline.formats.bop.extent import point_cloud_diameter  # noqa: E402
+from pipeline.method.refinement.icp import refine_icp  # noqa: E402
+from pipeline.method.geometry.sampling import sample_surface  # noqa: E402
+from pipeline.method.geometry.transforms import rotation_angle_deg  # noqa: E402
+from pipeline.method.registration.fusion import PcaBasis, apply_pca, fit_pca, fuse  # noqa: E402
+from pipeline.method.registration.ransac import RansacParams, ransac_align  # noqa: E402
+from pipeline.method.render.templates import render_templates, template_views  # noqa: E402
 from registration_scenes import (  # noqa: E402
     OBJECT_KINDS,
     SCENE_WH,
@@ -147,7 +147,7 @@ def prepare_model(mesh: trimesh.Trimesh, renderer: Any, key: str, encoders: Sequ
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from pipeline.render.renderer import Light, Lighting, Renderer
+    from pipeline.method.render.renderer import Light, Lighting, Renderer
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--views", type=int, default=10, help="random views per object")

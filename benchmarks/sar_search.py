@@ -8,8 +8,8 @@ or a dataset's folder in one) and keeps the estimates whose every variant was sc
 (runs with ``refine.sar_coarse_deg=0``, or made before the coarse-to-fine search); an
 estimate found again with the same similarities (another refine version) counts once.
 A variant's similarity does not depend on which other variants are scored, so the
-coarse-to-fine search (:func:`pipeline.refinement.sar.coarse_variants`, then
-:func:`~pipeline.refinement.sar.fine_variants`: those within ``coarse`` of the ``leads``
+coarse-to-fine search (:func:`pipeline.method.refinement.sar.coarse_variants`, then
+:func:`~pipeline.method.refinement.sar.fine_variants`: those within ``coarse`` of the ``leads``
 best) can be replayed exactly on those numbers, with the functions SAR itself calls
 and SAR's rule (a variant replaces the ICP pose only when it beats it by more than
 ``min_gain``). Reported per setting: estimates, how many end with the same
@@ -39,7 +39,7 @@ def exhaustive_estimates(caches: list[Path]) -> list[tuple[str, np.ndarray, np.n
     """(label, angles (V, V) deg, similarities (V,)) of every estimate scored exhaustively."""
     import pandas as pd
 
-    from pipeline.refinement.sar import variant_angles
+    from pipeline.method.refinement.sar import variant_angles
 
     out, seen = [], set()
     for cache in caches:
@@ -63,7 +63,7 @@ def exhaustive_estimates(caches: list[Path]) -> list[tuple[str, np.ndarray, np.n
 
 def replay(angles: np.ndarray, sim: np.ndarray, coarse: float, leads: int) -> np.ndarray:
     """The similarities the coarse-to-fine search would have (NaN where not scored)."""
-    from pipeline.refinement.sar import coarse_variants, fine_variants
+    from pipeline.method.refinement.sar import coarse_variants, fine_variants
 
     first = coarse_variants(angles, coarse)
     fine = fine_variants(angles, first, sim, coarse, leads)

@@ -77,8 +77,8 @@ def config_args(dataset: str, run: Path | None, extra: dict[str, object]) -> lis
 
 
 def plan_for(dataset: str, run: Path | None, extra: dict[str, object]):
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     overrides: dict[str, object] = {"datasets": dataset, **extra}
     if run is not None:
@@ -95,7 +95,7 @@ def stage_job(stage: str, item: str, dataset: str, run: Path | None, extra: dict
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{(proc.stdout + proc.stderr)[-3000:]}")
-    from pipeline.store import read_manifest
+    from pipeline.common.store import read_manifest
 
     m = read_manifest(plan_for(dataset, run, extra)[stage].manifest(item))
     return {"time_s": float(m["wall_time_s"]), "peak_mb": float(m["peak_rss_mb"])}
@@ -109,7 +109,7 @@ def chain(item: str, dataset: str, run: Path | None, extra: dict[str, object]) -
 
 def targets_of(plan, item: str) -> tuple[int, int]:
     """(targets, candidates) of a scene item, from its scene_features artifact."""
-    from pipeline.store import read_table
+    from pipeline.common.store import read_table
 
     cands = read_table(plan["scene_features"].item_dir(item) / "candidates.parquet")
     return int(cands[["im_id", "obj_id"]].drop_duplicates().shape[0]), int(len(cands))
@@ -200,7 +200,7 @@ def curve_workers(args) -> list[Point]:
 
 def plan_peak_memory(dataset: str) -> dict[str, float]:
     """Largest peak RSS (MiB) per stage over the jobs of the default plan in the cache."""
-    from pipeline.store import read_manifest
+    from pipeline.common.store import read_manifest
 
     plan = plan_for(dataset, None, {})
     out: dict[str, float] = {}

@@ -46,33 +46,33 @@ ROOT = Path(__file__).resolve().parent.parent
 # Labels are prefixed with the stage being run. Missing attributes are skipped, so that
 # older trees can be measured with the same list.
 WRAPPED: list[tuple[str, str, Any]] = [
-    ("pipeline.plan", "build_encoders", "encoder build (one-time)"),
-    ("pipeline.encoders.dinov2:Dinov2Encoder", "_load", "DINOv2 weight load (one-time)"),
-    ("pipeline.render.renderer:Renderer", "__init__", "renderer context (one-time)"),
-    ("pipeline.render.renderer:Renderer", "add_mesh", "renderer mesh upload"),
-    ("pipeline.scene_side", "candidate_points", "depth lift + outlier removal"),
-    ("pipeline.encoders.fpfh:FpfhEncoder", "encode", "FPFH + normals"),
-    ("pipeline.encoders.lifting", "crop_and_resize", "crop + resize"),
-    ("pipeline.refinement.sar", "crop_and_resize", "crop + resize"),
-    ("pipeline.encoders.dinov2:Dinov2Encoder", "encode", "DINOv2 forward"),
-    ("pipeline.encoders.colortex:ColorTexEncoder", "encode", "colortex"),
-    ("pipeline.encoders.lifting", "sample_features_at_pixels", "lifting at the points"),
-    ("pipeline.encoders.lifting", "upsample_to_crop", "upsampling whole maps"),
-    ("pipeline.scene_side", "matchable_model", "model PCA"),
-    ("pipeline.registration.ransac", "ransac_hypotheses", "RANSAC"),
-    ("pipeline.registration.ransac", "feature_neighbours", "feature matching"),
-    ("pipeline.geometry.icp", "refine_icp",
+    ("pipeline.workflow.plan", "build_encoders", "encoder build (one-time)"),
+    ("pipeline.method.encoders.dinov2:Dinov2Encoder", "_load", "DINOv2 weight load (one-time)"),
+    ("pipeline.method.render.renderer:Renderer", "__init__", "renderer context (one-time)"),
+    ("pipeline.method.render.renderer:Renderer", "add_mesh", "renderer mesh upload"),
+    ("pipeline.method.scene_side", "candidate_points", "depth lift + outlier removal"),
+    ("pipeline.method.encoders.fpfh:FpfhEncoder", "encode", "FPFH + normals"),
+    ("pipeline.method.encoders.lifting", "crop_and_resize", "crop + resize"),
+    ("pipeline.method.refinement.sar", "crop_and_resize", "crop + resize"),
+    ("pipeline.method.encoders.dinov2:Dinov2Encoder", "encode", "DINOv2 forward"),
+    ("pipeline.method.encoders.colortex:ColorTexEncoder", "encode", "colortex"),
+    ("pipeline.method.encoders.lifting", "sample_features_at_pixels", "lifting at the points"),
+    ("pipeline.method.encoders.lifting", "upsample_to_crop", "upsampling whole maps"),
+    ("pipeline.method.scene_side", "matchable_model", "model PCA"),
+    ("pipeline.method.registration.ransac", "ransac_hypotheses", "RANSAC"),
+    ("pipeline.method.registration.ransac", "feature_neighbours", "feature matching"),
+    ("pipeline.method.refinement.icp", "refine_icp",
      lambda a, k: "ICP quick (turns)" if k.get("iterations") == 10 and tuple(k.get("schedule", ())) == (1.0,)
      else "ICP"),
-    ("pipeline.registration.turns", "model_turns", "turns set-up"),
-    ("pipeline.render.renderer:Renderer", "render_depth_crop", "verification render"),
-    ("pipeline.registration.verification", "compare_depth", "verification compare"),
-    ("pipeline.scene_side:FineIcp", "__call__", "fine ICP (points, samples)"),
-    ("pipeline.geometry.sampling", "sample_surface", "model surface samples"),
-    ("pipeline.refinement.sar", "symmetry_aware_refinement", "SAR other"),
-    ("pipeline.refinement.sar", "render_in_crop", "SAR renders"),
-    ("pipeline.refinement.sar", "sar_similarity", "SAR similarity"),
-    ("pipeline.bop.detections", "rle_decode", "mask decode"),
+    ("pipeline.method.refinement.turns", "model_turns", "turns set-up"),
+    ("pipeline.method.render.renderer:Renderer", "render_depth_crop", "verification render"),
+    ("pipeline.method.refinement.verification", "compare_depth", "verification compare"),
+    ("pipeline.method.scene_side:FineIcp", "__call__", "fine ICP (points, samples)"),
+    ("pipeline.method.geometry.sampling", "sample_surface", "model surface samples"),
+    ("pipeline.method.refinement.sar", "symmetry_aware_refinement", "SAR other"),
+    ("pipeline.method.refinement.sar", "render_in_crop", "SAR renders"),
+    ("pipeline.method.refinement.sar", "sar_similarity", "SAR similarity"),
+    ("pipeline.formats.bop.detections", "rle_decode", "mask decode"),
 ]
 ONE_TIME = ("encoder build (one-time)", "DINOv2 weight load (one-time)", "renderer context (one-time)")
 SCENE_STAGES = ("scene_features", "register", "refine")
@@ -134,10 +134,10 @@ def measure(dataset: str, config: dict[str, str], repeat: int) -> dict[str, Any]
     returns per run the exclusive seconds per part and the stages' totals, and the
     number of targets."""
     import stages
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
-    from pipeline.stage_graph import STAGES
-    from pipeline.threads import use_threads
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
+    from pipeline.workflow.stage_graph import STAGES
+    from pipeline.common.threads import use_threads
 
     clock = Clock()
     _install(clock)
@@ -176,7 +176,7 @@ def _prepare(cache: Path, weights: Path, config: dict[str, str]) -> None:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from encoders import _dinov2_weights
 
-    from pipeline.encoders.dinov2 import hf_dirname
+    from pipeline.method.encoders.dinov2 import hf_dirname
 
     if not (weights / hf_dirname("vits14")).exists():
         weights.mkdir(parents=True, exist_ok=True)

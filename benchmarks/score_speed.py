@@ -99,8 +99,8 @@ def _small_rot(rng: np.random.Generator, lo_deg: float, hi_deg: float) -> np.nda
 
 def build_estimates(root: Path, per_gt_scale: int, seed: int = 0) -> tuple[list[dict], dict[tuple[int, int, int], int]]:
     """Estimates (dicts for ``write_results_csv``) and the count per (scene, image, object) of targets."""
-    from pipeline.bop import BopDataset
-    from pipeline.metrics.calc_errors import eval_models_info
+    from pipeline.formats.bop import BopDataset
+    from pipeline.evaluation.metrics.calc_errors import eval_models_info
 
     ds = BopDataset(root)
     rng = np.random.default_rng(seed)
@@ -165,7 +165,7 @@ def build_estimates(root: Path, per_gt_scale: int, seed: int = 0) -> tuple[list[
 
 def write_all_targets(root: Path, counts: dict[tuple[int, int, int], int], path: Path) -> None:
     """The dataset's targets with inst_count raised so that every estimate of a target is scored."""
-    from pipeline.bop import BopDataset
+    from pipeline.formats.bop import BopDataset
 
     out = []
     for t in BopDataset(root).targets():
@@ -192,7 +192,7 @@ TIMING_KEYS = [
 
 #: ``freeze score`` on the bench file, as a command template (fields: see ``--versus``).
 OURS_COMMAND = (
-    "{python} -c 'import sys; from pipeline.cli import app; sys.argv[0] = \"freeze\"; app()' "
+    "{python} -c 'import sys; from pipeline.commands.cli import app; sys.argv[0] = \"freeze\"; app()' "
     "score {csv} --dataset-root {root} --out {out} --workers {workers} {targets_option}"
 )
 
@@ -339,8 +339,8 @@ def main() -> None:
 
     import warnings
 
-    from pipeline.bop import write_results_csv
-    from pipeline.metrics import score_results_file
+    from pipeline.formats.bop import write_results_csv
+    from pipeline.evaluation.metrics import score_results_file
 
     root = args.dataset_root
     if root is None:

@@ -44,14 +44,14 @@ def main() -> None:
     import cv2
     from scipy.spatial import cKDTree
 
-    from pipeline.geometry.icp import refine_icp
-    from pipeline.geometry.depth import lift_depth
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.transforms import rotation_angle_deg
-    from pipeline.metrics.pose_errors import mssd
-    from pipeline.registration.verification import verification_window, verify_pose
-    from pipeline.geometry.crops import mask_to_bbox
-    from pipeline.render.renderer import Renderer
+    from pipeline.method.refinement.icp import refine_icp
+    from pipeline.method.geometry.depth import lift_depth
+    from pipeline.method.geometry.sampling import sample_surface
+    from pipeline.method.geometry.transforms import rotation_angle_deg
+    from pipeline.evaluation.metrics.pose_errors import mssd
+    from pipeline.method.refinement.verification import verification_window, verify_pose
+    from pipeline.method.geometry.crops import mask_to_bbox
+    from pipeline.method.render.renderer import Renderer
 
     ds, scene_id, im_id, gt, d = tyol_frame()
     mesh = ds.load_model(gt.obj_id)

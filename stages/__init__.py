@@ -4,7 +4,7 @@ A stage module reads its upstream artifacts (through ``plan.io(stage, item)``, w
 refuses what the stage's declaration does not list), calls one library function that
 holds the algorithm, and publishes its own artifact. Its declaration (code version,
 items, reads, writes, and where its algorithm lives) is in
-:mod:`pipeline.stage_graph`; bump the code version there whenever a change alters the
+:mod:`pipeline.workflow.stage_graph`; bump the code version there whenever a change alters the
 stage's output. Modules import their heavy dependencies inside ``run``.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-from pipeline.stage_graph import STAGES
+from pipeline.workflow.stage_graph import STAGES
 
 
 def stage_module(stage: str) -> ModuleType:

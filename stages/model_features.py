@@ -4,17 +4,17 @@ Arrays: points (N, 3) float32 mm and normals (N, 3) in the model frame; geometri
 (N, G) float32 (multi-scale, concatenated); visual (N, C) float32 (template features
 lifted onto the points and averaged over the views that see them); view_count (N,)
 int32 (how many templates saw each point; 0 means the feature was copied from the
-nearest seen point). Algorithm: :func:`pipeline.model_side.model_features`.
+nearest seen point). Algorithm: :func:`pipeline.method.model_side.model_features`.
 """
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan, build_encoders, encoder_runtime
-from pipeline.store import load_arrays
+from pipeline.workflow.plan import DatasetPlan, build_encoders, encoder_runtime
+from pipeline.common.store import load_arrays
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.model_side import model_features, save_model_features
+    from pipeline.method.model_side import model_features, save_model_features
 
     io = plan.io("model_features", item)
     obj_id, p = io.item_id(), io.params

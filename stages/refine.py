@@ -2,8 +2,8 @@
 the choice of the estimates per target, symmetry-aware refinement (SAR), and (item
 ``all``) the BOP results CSV ``<method>_<dataset>-<split>.csv`` of the whole dataset.
 
-Per scene (algorithm: :func:`pipeline.scene_side.refine_candidates`,
-:func:`~pipeline.scene_side.choose_estimates`, :func:`~pipeline.scene_side.refine_by_symmetry`):
+Per scene (algorithm: :func:`pipeline.method.scene_side.refine_candidates`,
+:func:`~pipeline.method.scene_side.choose_estimates`, :func:`~pipeline.method.scene_side.refine_by_symmetry`):
 
 - ``hypotheses.parquet``: every hypothesis after ICP (register's, and the turns of each
   candidate's best one, source ``turn`` with its ``parent``): its pose, ICP fitness and
@@ -27,7 +27,7 @@ Per scene (algorithm: :func:`pipeline.scene_side.refine_candidates`,
 The CSV's ``time`` is, per image, the prior's time plus this pipeline's scene-side time
 (scene_features + register + refine) for that image, in seconds (BOP: the time to
 produce all estimates of the image, excluding model onboarding; algorithm:
-:func:`pipeline.bop.results.image_times`).
+:func:`pipeline.formats.bop.results.image_times`).
 """
 
 from __future__ import annotations
@@ -38,29 +38,29 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.parallel import PerThread
-from pipeline.plan import DatasetPlan, obj_item
-from pipeline.store import load_arrays, read_table, write_table
+from pipeline.common.parallel import PerThread
+from pipeline.workflow.plan import DatasetPlan, obj_item
+from pipeline.common.store import load_arrays, read_table, write_table
 
 THREADS_HELP = False
 """Whether the candidates run on the job's threads when no dask scheduler is named: not by
 default, since two threads were not faster here (0.83x median, 0.76-2.17x paired,
 ``benchmarks/results/dask.md``): Mesa's software rasteriser already spreads each
 verification render over the cores, and the rest holds the GIL often enough. A dask
-scheduler named by the run still gets the candidates (:func:`pipeline.parallel.job_mapper`)."""
+scheduler named by the run still gets the candidates (:func:`pipeline.common.parallel.job_mapper`)."""
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     if item == "all":
         return _collect(plan)
-    from pipeline.bop.detections import rle_decode
-    from pipeline.geometry.symmetry import SymmetrySet
-    from pipeline.model_side import read_near_symmetries, read_symmetries
-    from pipeline.plan import build_encoders, encoder_runtime
-    from pipeline.progress import progress_bar
-    from pipeline.registration.turns import model_turns
-    from pipeline.parallel import job_mapper
-    from pipeline.scene_side import (POSE_COLUMNS, SAR_COLUMNS, SceneImages, choose_estimates, refine_by_symmetry,
+    from pipeline.formats.bop.detections import rle_decode
+    from pipeline.method.geometry.symmetry import SymmetrySet
+    from pipeline.method.model_side import read_near_symmetries, read_symmetries
+    from pipeline.workflow.plan import build_encoders, encoder_runtime
+    from pipeline.common.progress import progress_bar
+    from pipeline.method.refinement.turns import model_turns
+    from pipeline.common.parallel import job_mapper
+    from pipeline.method.scene_side import (POSE_COLUMNS, SAR_COLUMNS, SceneImages, choose_estimates, refine_by_symmetry,
                                      refine_candidates, sar_transforms, time_table)
 
     io = plan.io("refine", item)
@@ -151,7 +151,7 @@ class _ThreadTools:
     last image and mask). ``fine_objects``: the objects the fine ICP refines (None: off)."""
 
     def __init__(self, loaders: Any, params: Any, fine_objects: set[int] | None):
-        from pipeline.scene_side import FineIcp, PoseVerifier
+        from pipeline.method.scene_side import FineIcp, PoseVerifier
 
         images = loaders.keeping_last()
         self.verify = PoseVerifier(images, params)
@@ -183,8 +183,8 @@ class _ThreadFine:
 
 def _collect(plan: DatasetPlan) -> None:
     """Gather every scene's refined poses into the BOP results CSV."""
-    from pipeline.bop.results import estimates_rows, image_times, write_results_csv
-    from pipeline.scene_side import POSE_COLUMNS
+    from pipeline.formats.bop.results import estimates_rows, image_times, write_results_csv
+    from pipeline.method.scene_side import POSE_COLUMNS
 
     io = plan.io("refine", "all")
     poses, times = [], []
@@ -215,7 +215,7 @@ def _no_estimate_note(io, plan: DatasetPlan) -> str:
     import re
     from collections import Counter
 
-    from pipeline.store import read_manifest
+    from pipeline.common.store import read_manifest
 
     prior = read_manifest(io.input_dir("segment_prior")).get("summary", {})
     reasons = Counter({f"segment_prior: {k}": int(v) for k, v in (prior.get("dropped") or {}).items()})

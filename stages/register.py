@@ -12,16 +12,16 @@ n_correspondences, time_s (the candidate's, on its first row).
 ``pca.zarr``: the per-object PCA bases used (obj_id (K,), mean (K, C), components
 (K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual
 features carried no variance and the visual part was dropped); empty in geometry-only
-runs. Algorithm: :func:`pipeline.scene_side.register_candidates`.
+runs. Algorithm: :func:`pipeline.method.scene_side.register_candidates`.
 
 The candidates go to the dask cluster the run names (``dask_scheduler``, else
-``$DASK_SCHEDULER_ADDRESS``), else run in this process (:mod:`pipeline.parallel`).
+``$DASK_SCHEDULER_ADDRESS``), else run in this process (:mod:`pipeline.common.parallel`).
 """
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan, obj_item
-from pipeline.store import load_arrays, read_table, save_arrays, write_table
+from pipeline.workflow.plan import DatasetPlan, obj_item
+from pipeline.common.store import load_arrays, read_table, save_arrays, write_table
 
 THREADS_HELP = True
 """The candidates run on the job's threads (dask's threaded scheduler) when no dask scheduler is
@@ -31,9 +31,9 @@ without ``--threads`` and ``freeze estimate`` use every core."""
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.parallel import job_mapper
-    from pipeline.progress import progress_bar
-    from pipeline.scene_side import matchable_model, pca_arrays, register_candidates, time_table
+    from pipeline.common.parallel import job_mapper
+    from pipeline.common.progress import progress_bar
+    from pipeline.method.scene_side import matchable_model, pca_arrays, register_candidates, time_table
 
     io = plan.io("register", item)
     scene_id, p = io.item_id(), io.params

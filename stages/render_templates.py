@@ -3,17 +3,17 @@
 Arrays (chunked one view per chunk): rgb (R, S, S, 3) uint8 (grey replicated to 3
 channels for grey datasets), depth (R, S, S) float32 mm, mask (R, S, S) bool, K (R, 3, 3),
 R (R, 3, 3), t (R, 3) mm (model-to-camera). Algorithm:
-:func:`pipeline.render.templates.render_object_templates`.
+:func:`pipeline.method.render.templates.render_object_templates`.
 """
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan
-from pipeline.store import save_arrays
+from pipeline.workflow.plan import DatasetPlan
+from pipeline.common.store import save_arrays
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.render.templates import render_object_templates
+    from pipeline.method.render.templates import render_object_templates
 
     io = plan.io("render_templates", item)
     obj_id, p = io.item_id(), io.params

@@ -6,7 +6,7 @@ points (C, M, 3) float32 mm camera frame, pixels (C, M, 2) int32 (u, v), geometr
 (C, M, G) and visual (C, M, V) float32 (NaN beyond n_points), n_points (C,) int32,
 cand_id (C,) int64. ``candidates.parquet``: every candidate of the scene with status
 ``ok`` or ``skipped`` and the reason. ``images.parquet``: processing time per image (s).
-Algorithm: :func:`pipeline.scene_side.scene_features`.
+Algorithm: :func:`pipeline.method.scene_side.scene_features`.
 """
 
 from __future__ import annotations
@@ -16,14 +16,14 @@ import time
 import numpy as np
 import pandas as pd
 
-from pipeline.plan import DatasetPlan, build_encoders, encoder_runtime
-from pipeline.store import read_table, save_arrays, write_table
+from pipeline.workflow.plan import DatasetPlan, build_encoders, encoder_runtime
+from pipeline.common.store import read_table, save_arrays, write_table
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.bop.detections import rle_decode
-    from pipeline.progress import progress_bar
-    from pipeline.scene_side import CandidateMask, pack_candidates, scene_features
+    from pipeline.formats.bop.detections import rle_decode
+    from pipeline.common.progress import progress_bar
+    from pipeline.method.scene_side import CandidateMask, pack_candidates, scene_features
 
     io = plan.io("scene_features", item)
     scene_id, p = io.item_id(), io.params

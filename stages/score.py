@@ -2,30 +2,30 @@
 
 ``errors.parquet`` holds one row per (estimate, ground-truth instance) with MSSD (mm),
 MSPD (px) and VSD per tau; ``scores.json`` holds AR, AR_VSD, AR_MSSD, AR_MSPD and the
-counts. Algorithm: :func:`pipeline.metrics.score_results_file` (also behind
+counts. Algorithm: :func:`pipeline.evaluation.metrics.score_results_file` (also behind
 ``freeze score``).
 
 Datasets whose test ground truth is private (ITODD, HB: no ``scene_gt.json`` in the
 distributed test split) cannot be scored here: when a target scene has no
-``scene_gt.json``, ``scores.json`` says so (:func:`pipeline.metrics.evaluate.unscored_summary`),
+``scene_gt.json``, ``scores.json`` says so (:func:`pipeline.evaluation.metrics.evaluate.unscored_summary`),
 with AR left empty, and the results CSV is the file to submit to the BOP evaluation server.
 
-A results CSV with an R that is not a rotation (:data:`pipeline.metrics.ROTATION_TOLERANCE`)
+A results CSV with an R that is not a rotation (:data:`pipeline.evaluation.metrics.ROTATION_TOLERANCE`)
 fails the stage in both cases, with the message of ``freeze score`` (one line naming the
 file, the number of bad rows and the first one), and nothing is published: scoring it
 would give numbers that mean nothing, submitting it a rejected file.
 
 The images' errors go to the dask cluster the run names (``dask_scheduler``, else
 ``$DASK_SCHEDULER_ADDRESS``), else to ``score.n_workers`` processes of this job
-(:mod:`pipeline.parallel`).
+(:mod:`pipeline.common.parallel`).
 """
 
 from __future__ import annotations
 
 import json
 
-from pipeline.plan import DatasetPlan, missing_ground_truth
-from pipeline.store import read_manifest
+from pipeline.workflow.plan import DatasetPlan, missing_ground_truth
+from pipeline.common.store import read_manifest
 
 THREADS_HELP = True
 """The images run on the job's threads (dask's threaded scheduler) when no dask scheduler is
@@ -35,9 +35,9 @@ without ``--threads`` and ``freeze estimate`` use every core."""
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
-    from pipeline.metrics import score_results_file
-    from pipeline.metrics.evaluate import unscored_summary
-    from pipeline.parallel import job_mapper
+    from pipeline.evaluation.metrics import score_results_file
+    from pipeline.evaluation.metrics.evaluate import unscored_summary
+    from pipeline.common.parallel import job_mapper
 
     io = plan.io("score", item)
     csv = io.input_dir("refine") / plan.results_csv_name

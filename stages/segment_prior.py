@@ -11,23 +11,23 @@ inst_count`` most confident per pair (top_k per instance to find).
 Several prior files (``--config prior=a,b``) are merged first: detections of one
 (image, object) from different files whose masks overlap by ``merge_iou`` or more are
 one instance, and the more confident one is kept. Algorithm:
-:func:`pipeline.segmentation.candidates_from_priors`.
+:func:`pipeline.method.segmentation.candidates_from_priors`.
 
 Before that, where the dataset's ground truth is public, the stage refuses ground truth
-the score stage could not read (:meth:`pipeline.bop.BopDataset.ground_truth_problems`),
+the score stage could not read (:meth:`pipeline.formats.bop.BopDataset.ground_truth_problems`),
 in one line naming the file, the entry and the field: it is the first scene-side job,
 so a bad ``scene_gt.json`` stops the run at its start.
 """
 
 from __future__ import annotations
 
-from pipeline.bop.errors import BopFormatError
-from pipeline.plan import DatasetPlan
-from pipeline.store import write_table
+from pipeline.formats.bop.errors import BopFormatError
+from pipeline.workflow.plan import DatasetPlan
+from pipeline.common.store import write_table
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
-    from pipeline.segmentation import candidates_from_priors
+    from pipeline.method.segmentation import candidates_from_priors
 
     io = plan.io("segment_prior", item)
     bop = io.bop()

@@ -1,7 +1,7 @@
 """Stage symmetries: the geometric symmetries of one object -> ``symmetries.json``.
 
-Estimated from the model's shape alone (algorithm: :func:`pipeline.model_side.symmetry_record`,
-over :func:`pipeline.geometry.symmetry.estimate_symmetries`): the symmetry-aware
+Estimated from the model's shape alone (algorithm: :func:`pipeline.method.model_side.symmetry_record`,
+over :func:`pipeline.method.geometry.symmetry.estimate_symmetries`): the symmetry-aware
 refinement needs the transforms that leave the *shape* unchanged, including those a
 texture breaks (which BOP's ``models_info.json`` does not declare, since it describes
 the symmetries that matter for evaluation).
@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import json
 
-from pipeline.plan import DatasetPlan
+from pipeline.workflow.plan import DatasetPlan
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.geometry.symmetry import SymmetrySet
-    from pipeline.model_side import symmetry_record
+    from pipeline.method.geometry.symmetry import SymmetrySet
+    from pipeline.method.model_side import symmetry_record
 
     io = plan.io("symmetries", item)
     obj_id, p = io.item_id(), io.params

@@ -1,18 +1,18 @@
 """Stage synth: build the dataset of a synthetic or semi-real manifest (those only).
 
 Item ``dataset``: the BOP dataset folder ``<item>/<dataset name>/`` with its
-localisation prior under ``detections/``. Algorithm: :func:`pipeline.synth.build_dataset`
-(the generator, :func:`pipeline.synth.generate`, or the semi-real builder,
-:func:`pipeline.synth.build_semireal`, which reads the real sample ``source``).
+localisation prior under ``detections/``. Algorithm: :func:`pipeline.evaluation.synth.build_dataset`
+(the generator, :func:`pipeline.evaluation.synth.generate`, or the semi-real builder,
+:func:`pipeline.evaluation.synth.build_semireal`, which reads the real sample ``source``).
 """
 
 from __future__ import annotations
 
-from pipeline.plan import DatasetPlan
+from pipeline.workflow.plan import DatasetPlan
 
 
 def run(plan: DatasetPlan, item: str = "dataset", progress: bool = True) -> None:
-    from pipeline.synth import build_dataset
+    from pipeline.evaluation.synth import build_dataset
 
     io = plan.io("synth", item)
     source = io.source_dir if plan.dataset.kind == "semireal" else None

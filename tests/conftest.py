@@ -65,8 +65,8 @@ def main_run(tmp_path_factory) -> tuple[Path, str]:
 def current_dir(work: Path, stage: str, **overrides: str) -> Path:
     """The artifact folder of ``stage`` in the synthtiny plan of the default run (with
     ``overrides``) under ``work/cache``: other configurations' folders may sit beside it."""
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     return RunPlan(load_run({"datasets": "synthtiny", **overrides}), cache=work / "cache")["synthtiny"][stage].dir
 
@@ -76,7 +76,7 @@ def umask_022():
     """The process umask set to 022 (and read again) for the test, restored after."""
     import os
 
-    from pipeline import published_files as files
+    from pipeline.common import published_files as files
 
     old = os.umask(0o022)
     files.forget_umask()

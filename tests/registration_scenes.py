@@ -20,10 +20,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from pipeline.geometry.depth import lift_depth  # noqa: E402
-from pipeline.geometry.normals import estimate_normals  # noqa: E402
-from pipeline.geometry.sampling import sample_points  # noqa: E402
-from pipeline.geometry.transforms import random_rotation  # noqa: E402
+from pipeline.method.geometry.depth import lift_depth  # noqa: E402
+from pipeline.method.geometry.normals import estimate_normals  # noqa: E402
+from pipeline.method.geometry.sampling import sample_points  # noqa: E402
+from pipeline.method.geometry.transforms import random_rotation  # noqa: E402
 
 SCENE_K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 SCENE_WH = (640, 480)

@@ -8,8 +8,8 @@ import shutil
 import pytest
 
 from conftest import run_snakemake
-from pipeline import config as cfg
-from pipeline.plan import RunPlan
+from pipeline.common import config as cfg
+from pipeline.workflow.plan import RunPlan
 
 CORE = {"lmo": (None, 15.0), "tless": ("primesense", 15.0), "tudl": (None, 15.0), "icbin": (None, 15.0),
         "itodd": (None, 5.0), "hb": ("primesense", 15.0), "ycbv": (None, 15.0)}
@@ -37,7 +37,7 @@ def test_core_manifests_carry_what_differs():
 def bop_root(tmp_path_factory):
     """A bop_root holding only 'lmo' (a tiny synthetic dataset in its folder) and its
     default-detections file."""
-    from pipeline.synth import generate
+    from pipeline.evaluation.synth import generate
 
     root = tmp_path_factory.mktemp("bop")
     generate(root / "lmo", name="lmo", preset="tiny", seed=0, progress=False)
@@ -80,7 +80,7 @@ def test_datasets_check_summarises_and_names_problems(bop_root, tmp_path):
 
     from typer.testing import CliRunner
 
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     result = CliRunner().invoke(app, ["datasets", "check", str(bop_root), "--json"])
     assert result.exit_code == 0, result.output
@@ -115,7 +115,7 @@ def test_datasets_check_summarises_and_names_problems(bop_root, tmp_path):
 
 
 def test_prior_pattern_must_match_one_file(tmp_path):
-    from pipeline.plan import resolve_prior
+    from pipeline.workflow.plan import resolve_prior
 
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "cnos-fastsam_lmo-test_a.json").write_text("[]")
@@ -127,7 +127,7 @@ def test_prior_pattern_must_match_one_file(tmp_path):
 
 
 def test_a_relative_prior_must_stay_inside_bop_root(tmp_path):
-    from pipeline.plan import resolve_prior
+    from pipeline.workflow.plan import resolve_prior
 
     root = tmp_path / "bop"
     root.mkdir()

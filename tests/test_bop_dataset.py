@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.bop import (
+from pipeline.formats.bop import (
     BopDataset,
     BopFormatError,
     CameraInfo,
@@ -195,9 +195,9 @@ def test_plan_keys_cover_file_contents_and_remember_hashes(tree, tmp_path, monke
     """The keys of a BOP dataset on disk change with any byte the stages read (a model
     replaced by one of the same size, depth overwritten with zeros), the models key only
     with the model side's files; a second plan reads no file again."""
-    from pipeline import file_hashes
-    from pipeline.config import DatasetManifest
-    from pipeline.plan import _bop_layout
+    from pipeline.common import file_hashes
+    from pipeline.common.config import DatasetManifest
+    from pipeline.workflow.plan import _bop_layout
 
     root, v = tree
     ds = DatasetManifest(name="tiny", kind="bop", prior="none.json")

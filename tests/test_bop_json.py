@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.bop import BopFormatError, load_json, save_bop_json
+from pipeline.formats.bop import BopFormatError, load_json, save_bop_json
 
 
 def test_dict_layout_byte_exact(tmp_path):

@@ -1,5 +1,5 @@
 """The seven BOP core datasets as distributed: a tiny synthetic dataset is written in
-each one's exact layout (pipeline/synth/layouts.py) and read through the manifests,
+each one's exact layout (pipeline/evaluation/synth/layouts.py) and read through the manifests,
 the reader, `freeze datasets check`, the segment_prior stage and, for ITODD (grey tif,
 private ground truth) and T-LESS (test_primesense, models_cad), the whole pipeline."""
 
@@ -15,9 +15,9 @@ import pandas as pd
 import pytest
 
 from conftest import run_snakemake
-from pipeline import config as cfg
-from pipeline.plan import RunPlan
-from pipeline.synth.layouts import FIRST_TEST_SCENE, write_layout
+from pipeline.common import config as cfg
+from pipeline.workflow.plan import RunPlan
+from pipeline.evaluation.synth.layouts import FIRST_TEST_SCENE, write_layout
 
 ROOT = Path(__file__).resolve().parent.parent
 CORE = ("lmo", "tless", "tudl", "icbin", "itodd", "hb", "ycbv")
@@ -77,7 +77,7 @@ def test_each_layout_is_the_distributed_one(layouts):
 def test_reader_reads_every_layout_back_to_the_source(layouts):
     """Through the plan's reader, every layout gives back the synthetic source's
     pixels, depths and poses under the dataset's own object and scene ids."""
-    from pipeline.bop import BopDataset
+    from pipeline.formats.bop import BopDataset
 
     root, summaries, sources = layouts
     for name in CORE:
@@ -113,7 +113,7 @@ def test_reader_reads_every_layout_back_to_the_source(layouts):
 def test_datasets_check_accepts_every_layout(layouts):
     from typer.testing import CliRunner
 
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     root, _, _ = layouts
     result = CliRunner().invoke(app, ["datasets", "check", str(root), "--json"])
@@ -131,7 +131,7 @@ def test_datasets_check_accepts_every_layout(layouts):
 
 
 def test_datasets_check_names_layout_differences(layouts, tmp_path):
-    from pipeline.datasets_check import check_dataset
+    from pipeline.commands.datasets import check_dataset
 
     root, _, _ = layouts
     bad = tmp_path / "bop"
@@ -149,7 +149,7 @@ def test_datasets_check_names_layout_differences(layouts, tmp_path):
 
 
 def _candidates(plan) -> pd.DataFrame:
-    from pipeline.store import read_table
+    from pipeline.common.store import read_table
     from stages import segment_prior
 
     segment_prior.run(plan, "all", progress=False)
@@ -176,7 +176,7 @@ def test_segment_prior_merges_priors_and_maps_category_ids(layouts, tmp_path):
     cols = [c for c in single.columns if c != "prior_source"]
     pd.testing.assert_frame_equal(merged[cols], single[cols])
     assert set(merged.prior_source) == {"cnos-fastsam"}  # ties go to the first file
-    from pipeline.store import read_manifest
+    from pipeline.common.store import read_manifest
 
     report = read_manifest(plan["segment_prior"].item_dir("all"))["summary"]["merge"]
     n = len(json.loads(cnos.read_text()))

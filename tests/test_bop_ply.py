@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.bop import BopFormatError, load_mesh, read_ply, write_ply
+from pipeline.formats.bop import BopFormatError, load_mesh, read_ply, write_ply
 
 
 def _mesh(rng, n_v=50, n_f=80):

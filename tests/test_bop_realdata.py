@@ -13,8 +13,8 @@ import warnings
 import numpy as np
 import pytest
 
-from pipeline.bop import BopDataset, BopFormatError, read_estimates_json, read_results_csv, write_results_csv
-from pipeline.bop.jsonio import bop_json_text, load_json
+from pipeline.formats.bop import BopDataset, BopFormatError, read_estimates_json, read_results_csv, write_results_csv
+from pipeline.formats.bop.jsonio import bop_json_text, load_json
 from shared_data import shared_dir, shared_file
 
 TINY_JSON = ("camera.json", "models/models_info.json", "test/000001/scene_gt.json", "test/000001/scene_camera.json",

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.bop import BopFormatError, read_results_csv, write_results_csv
+from pipeline.formats.bop import BopFormatError, read_results_csv, write_results_csv
 
 
 def _rows(n=5, seed=0):

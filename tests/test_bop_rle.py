@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.bop import (
+from pipeline.formats.bop import (
     BopFormatError,
     Detection,
     detection_from_mask,

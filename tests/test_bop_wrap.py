@@ -1,4 +1,4 @@
-"""One RGB-D frame wrapped as a one-image BOP dataset (pipeline/bop/wrap.py), read back
+"""One RGB-D frame wrapped as a one-image BOP dataset (pipeline/formats/bop/wrap.py), read back
 through the same reader the pipeline uses (BopDataset, load_detections)."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.bop import BopDataset, Target
-from pipeline.bop.detections import load_detections
-from pipeline.bop.ply import read_ply, write_ply
-from pipeline.bop.wrap import box_mask, choose_depth_scale, default_name, detections_path, wrap_frame
+from pipeline.formats.bop import BopDataset, Target
+from pipeline.formats.bop.detections import load_detections
+from pipeline.formats.bop.ply import read_ply, write_ply
+from pipeline.formats.bop.wrap import box_mask, choose_depth_scale, default_name, detections_path, wrap_frame
 from shared_data import shared_dir
 SAM6D_BOX = (372, 224, 68, 96)  # the watering can, as in tests/test_estimate.py
 
@@ -26,8 +26,8 @@ DIAGONAL = math.sqrt(sum(e * e for e in EXTENTS))
 
 def _check_pipeline_accepts(root: Path, name: str, detector: str = "estimate") -> None:
     """`freeze datasets check`'s test of a BOP dataset (what the stages read) finds no error."""
-    from pipeline.config import DatasetManifest
-    from pipeline.datasets_check import check_dataset
+    from pipeline.common.config import DatasetManifest
+    from pipeline.commands.datasets import check_dataset
 
     man = DatasetManifest(name=name, kind="bop", prior=f"detections/{detector}_{name}-test.json")
     rep = check_dataset(root, man)
@@ -165,7 +165,7 @@ def test_real_sam6d_frame_reads_back_through_the_bop_reader(tmp_path):
     """SAM-6D's demo frame (LINEMOD, object 5, depth in mm, no ground truth) from
     ../shared/realdata/sam6d-example, loaded with `freeze estimate`'s own loaders,
     wrapped with the can's box."""
-    from pipeline import estimate as est
+    from pipeline.commands import estimate as est
 
     sam6d = shared_dir("realdata", "sam6d-example", files=["camera.json", "rgb.png", "depth.png", "obj_000005.ply"])
     cam = est.load_camera(sam6d / "camera.json")
@@ -200,8 +200,8 @@ def test_grey_frame_goes_to_gray_as_one_channel(frame, tmp_path):
     it; an image whose channels differ is refused."""
     import cv2
 
-    from pipeline.config import DatasetManifest
-    from pipeline.datasets_check import check_dataset
+    from pipeline.common.config import DatasetManifest
+    from pipeline.commands.datasets import check_dataset
 
     grey = np.repeat(frame["rgb"][..., :1], 3, axis=2)
     kw = dict(depth_mm=frame["depth"], K=K, model_path=frame["model"], mask=frame["mask"])

@@ -1,4 +1,4 @@
-"""The camera-gap model of the `hard` preset (pipeline/synth/camera_gap.py): known answers
+"""The camera-gap model of the `hard` preset (pipeline/evaluation/synth/camera_gap.py): known answers
 for each departure, and a generated dataset that departs from the plain one."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.synth.camera_gap import CameraGap, camera_rgb, depth_normals, drift_colours, surface_holes
+from pipeline.evaluation.synth.camera_gap import CameraGap, camera_rgb, depth_normals, drift_colours, surface_holes
 
 K = np.array([[500.0, 0.0, 31.5], [0.0, 500.0, 23.5], [0.0, 0.0, 1.0]])
 NEUTRAL = CameraGap(colour_drift=0.0, colour_offset=0.0, white_balance=(1.0, 1.0), exposure=(1.0, 1.0),
@@ -72,8 +72,8 @@ def test_holes_on_dark_and_shiny_object_surfaces():
 
 @pytest.mark.slow
 def test_a_generated_hard_dataset_departs_from_the_plain_one(tmp_path):
-    from pipeline.bop import BopDataset
-    from pipeline.synth import PRESETS, SynthPreset, generate
+    from pipeline.formats.bop import BopDataset
+    from pipeline.evaluation.synth import PRESETS, SynthPreset, generate
 
     tiny = PRESETS["tiny"]
     hard = dataclasses.replace(tiny, name="tinyhard", camera_gap=CameraGap(), sensor=PRESETS["hard"].sensor)

@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 
 from conftest import current_dir, run_snakemake
-from pipeline import config as cfg
-from pipeline.plan import RunPlan, image_chunks, parse_item, scene_item
-from pipeline.stage_graph import STAGES
+from pipeline.common import config as cfg
+from pipeline.workflow.plan import RunPlan, image_chunks, parse_item, scene_item
+from pipeline.workflow.stage_graph import STAGES
 
 
 def test_image_chunks_cut_a_scene_into_consecutive_runs():
@@ -79,7 +79,7 @@ def test_a_job_keeps_its_libraries_to_the_threads_it_is_given():
     import subprocess
     import sys
 
-    code = ("from pipeline.threads import use_threads, job_threads; use_threads(1); import torch; "
+    code = ("from pipeline.common.threads import use_threads, job_threads; use_threads(1); import torch; "
             "a = torch.get_num_threads(); use_threads(2); print(a, torch.get_num_threads(), job_threads())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parent.parent).stdout.split()

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.bop.results import read_estimates_json, write_results_csv
-from pipeline.cli import app
+from pipeline.formats.bop.results import read_estimates_json, write_results_csv
+from pipeline.commands.cli import app
 
 DATA = Path(__file__).parent / "data" / "tinybop"
 runner = CliRunner()
@@ -72,7 +72,7 @@ def test_encoders_command_reports_weights(monkeypatch, tmp_path):
 def test_score_command_refuses_an_r_that_is_not_a_rotation(tmp_path):
     import numpy as np
 
-    from pipeline.metrics import ROTATION_TOLERANCE
+    from pipeline.evaluation.metrics import ROTATION_TOLERANCE
 
     est = read_estimates_json(DATA / "estimates" / "gt_icbin-test.json")
     est.at[3, "R"] = np.zeros((3, 3))
@@ -103,10 +103,10 @@ def test_published_results_table_and_scores_follow_the_umask(tmp_path, monkeypat
     import stat
     from types import SimpleNamespace
 
-    from pipeline import cli
-    from pipeline.metrics.evaluate import score_results_file
-    from pipeline import published_files as files
-    from pipeline.store import atomic_path
+    from pipeline.commands import cli
+    from pipeline.evaluation.metrics.evaluate import score_results_file
+    from pipeline.common import published_files as files
+    from pipeline.common.store import atomic_path
 
     @contextlib.contextmanager
     def private(path):  # as a secure temporary file would be created

@@ -58,7 +58,7 @@ def test_profile_is_yaml_and_names_existing_rules(name):
 def test_every_stage_rule_declares_threads_memory_and_wall_time_from_its_stage():
     """Each stage rule takes threads, mem_mb and runtime from its StageSpec (declared
     once); bop_all runs where Snakemake runs (a local rule), not as a cluster job."""
-    from pipeline.stage_graph import STAGES
+    from pipeline.workflow.stage_graph import STAGES
 
     text = {f.stem: f.read_text() for f in sorted((ROOT / "stages").glob("*.smk"))}
     for stage, spec in STAGES.items():
@@ -258,7 +258,7 @@ def test_compare_ignores_time_only(tmp_path):
 # ---------------------------------------------------------------- no sbatch here
 
 def test_missing_submitter_names_sbatch_only_for_slurm_executors(monkeypatch):
-    from pipeline import cluster_submit
+    from pipeline.workflow import cluster_submit
 
     monkeypatch.setattr(cluster_submit.shutil, "which", lambda cmd: None)
     why = cluster_submit.missing_submitter("slurm", where="profile profiles/slurm")

@@ -1,4 +1,4 @@
-"""Dask inside a job (:mod:`pipeline.parallel`): register's and refine's candidates and
+"""Dask inside a job (:mod:`pipeline.common.parallel`): register's and refine's candidates and
 score's images on a loopback dask cluster, and on threads, give the artifacts of the
 in-process run; an unreachable scheduler fails at once with one line."""
 
@@ -17,9 +17,9 @@ import pandas as pd
 import pytest
 
 from conftest import ROOT, current_dir
-from pipeline import config as cfg
-from pipeline.parallel import SCHEDULER_ENV, SchedulerUnreachable, scheduler_address, work_mapper
-from pipeline.plan import RunPlan
+from pipeline.common import config as cfg
+from pipeline.common.parallel import SCHEDULER_ENV, SchedulerUnreachable, scheduler_address, work_mapper
+from pipeline.workflow.plan import RunPlan
 
 STAGES = ("register", "refine", "score")
 TIME_COLUMNS = {"time_s", "time"}
@@ -118,7 +118,7 @@ def test_freeze_stage_exits_non_zero_with_one_line_on_an_unreachable_scheduler(t
     t0 = time.perf_counter()
     # The item's inputs exist (tiny_run), so the job gets as far as the mapper and fails
     # there, before writing anything.
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "stage", "register", "--dataset", "synthtiny",
+    proc = subprocess.run([sys.executable, "-m", "pipeline.commands.cli", "stage", "register", "--dataset", "synthtiny",
                            "--item", "scene_000001", "--no-progress"], env=env, cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
     elapsed = time.perf_counter() - t0

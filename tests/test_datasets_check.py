@@ -15,11 +15,11 @@ import pytest
 import trimesh
 from typer.testing import CliRunner
 
-from pipeline.bop import (BopFormatError, BopDataset, CameraInfo, GtInfo, GtPose, Target, detection_from_mask,
+from pipeline.formats.bop import (BopFormatError, BopDataset, CameraInfo, GtInfo, GtPose, Target, detection_from_mask,
                           save_depth_png, save_detections, save_rgb, write_camera, write_models_info, write_ply,
                           write_scene_camera, write_scene_gt, write_scene_gt_info, write_targets)
-from pipeline.bop.wrap import model_info_from_vertices
-from pipeline.cli import app
+from pipeline.formats.bop.wrap import model_info_from_vertices
+from pipeline.commands.cli import app
 
 W, H = 640, 480  # LM-O's image size (manifests/datasets/lmo.yaml), so the layout check stays quiet
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
@@ -145,7 +145,7 @@ def test_model_in_metres(lmo):
 
 def test_model_problems_when_the_reader_accepts_the_mesh():
     """The check's own tests of a mesh, for what the PLY reader lets through."""
-    from pipeline.datasets_check import model_problems
+    from pipeline.commands.datasets import model_problems
 
     class Reader:  # stands in for BopDataset.load_model
         def __init__(self, mesh):
@@ -227,7 +227,7 @@ def test_unreadable_rgb_and_zero_depth_with_deep(lmo):
 
 
 def test_deep_sample_is_first_middle_last_of_each_scene():
-    from pipeline.datasets_check import deep_sample
+    from pipeline.commands.datasets import deep_sample
 
     images = [(1, i) for i in (0, 3, 5, 8, 9)] + [(2, 4)] + [(3, 1), (3, 2)]
     assert deep_sample(images) == [(1, 0), (1, 5), (1, 9), (2, 4), (3, 1), (3, 2)]
@@ -254,7 +254,7 @@ def test_dataset_folder_given_as_root_gets_a_hint(lmo):
 
 def test_reader_refuses_8bit_depth_and_keeps_float_tiff(lmo):
     """One depth rule for the dataset reader and `freeze estimate`'s inputs."""
-    from pipeline.estimate.inputs import EstimateError, load_depth
+    from pipeline.commands.estimate.inputs import EstimateError, load_depth
 
     _, ds = lmo
     depth = ds / "test" / "000001" / "depth"

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipeline.bop import (
+from pipeline.formats.bop import (
     BopFormatError,
     category_id_problem,
     detection_from_mask,
@@ -17,8 +17,8 @@ from pipeline.bop import (
     merge_detections,
     rle_counts_to_string,
 )
-from pipeline.bop.detections import _mask_iou, _MaskGeom
-from pipeline.segmentation import select_candidates
+from pipeline.formats.bop.detections import _mask_iou, _MaskGeom
+from pipeline.method.segmentation import select_candidates
 
 LMO_OBJ_IDS = [1, 5, 6, 8, 9, 10, 11, 12]
 H, W = 40, 50

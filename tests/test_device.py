@@ -26,13 +26,13 @@ from scipy.spatial import cKDTree
 
 transformers = pytest.importorskip("transformers")
 
-from pipeline import config as cfg  # noqa: E402
-from pipeline.encoders import dinov2 as d2  # noqa: E402
-from pipeline.encoders import registry  # noqa: E402
-from pipeline.encoders.gedi import GeDiEncoder, save_random_checkpoint  # noqa: E402
-from pipeline.encoders.gedi_ops import ball_query, furthest_point_sample_with_sqdist  # noqa: E402
-from pipeline.encoders.registry import build_encoder  # noqa: E402
-from pipeline.plan import RunPlan, build_encoders, encoder_runtime, obj_item  # noqa: E402
+from pipeline.common import config as cfg  # noqa: E402
+from pipeline.method.encoders import dinov2 as d2  # noqa: E402
+from pipeline.method.encoders import registry  # noqa: E402
+from pipeline.method.encoders.gedi import GeDiEncoder, save_random_checkpoint  # noqa: E402
+from pipeline.method.encoders.gedi_ops import ball_query, furthest_point_sample_with_sqdist  # noqa: E402
+from pipeline.method.encoders.registry import build_encoder  # noqa: E402
+from pipeline.workflow.plan import RunPlan, build_encoders, encoder_runtime, obj_item  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TEST_DEVICE = os.environ.get("FREEZE_TEST_DEVICE", "cpu")
@@ -170,7 +170,7 @@ def test_cuda_without_cuda_stops_snakemake_and_a_stage_with_one_line(tmp_path):
     lines = [ln for ln in proc.stderr.splitlines() if "no CUDA device is visible" in ln]
     assert proc.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: --config device=cuda"), proc.stderr
     assert "Traceback" not in proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "stage", "symmetries", "--dataset", "synthtiny",
+    proc = subprocess.run([sys.executable, "-m", "pipeline.commands.cli", "stage", "symmetries", "--dataset", "synthtiny",
                            "--item", "obj_000002", "--config", "datasets=synthtiny", "--config", "device=cuda"],
                           env=env, capture_output=True, text=True, timeout=600, cwd=ROOT)
     out = proc.stdout + proc.stderr

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.encoders import dinov2 as d2
+from pipeline.method.encoders import dinov2 as d2
 from shared_data import shared_dir
 
 pytestmark = pytest.mark.slow

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.encoders.colortex import ColorTexEncoder
-from pipeline.encoders.fpfh import FpfhEncoder
-from pipeline.encoders.registry import (
+from pipeline.method.encoders.colortex import ColorTexEncoder
+from pipeline.method.encoders.fpfh import FpfhEncoder
+from pipeline.method.encoders.registry import (
     EncoderSpec,
     GeometricEncoder,
     VisualEncoder,
@@ -18,8 +18,8 @@ from pipeline.encoders.registry import (
     known_encoders,
     register_encoder,
 )
-from pipeline.geometry.sampling import sample_surface
-from pipeline.geometry.transforms import random_rotation
+from pipeline.method.geometry.sampling import sample_surface
+from pipeline.method.geometry.transforms import random_rotation
 
 # --- registry ---------------------------------------------------------------------
 
@@ -180,7 +180,7 @@ def test_colortex_brightness_invariance():
 
 
 def test_empty_encoders_give_zero_channels_and_lifting_skips_them():
-    from pipeline.encoders.lifting import lift_model_visual_features, sample_features_at_pixels
+    from pipeline.method.encoders.lifting import lift_model_visual_features, sample_features_at_pixels
 
     geo, vis = build_encoder({"name": "none-geometric"}), build_encoder({"name": "none-visual"})
     pts = np.random.default_rng(0).normal(size=(7, 3)).astype(np.float32)
@@ -205,8 +205,8 @@ def test_empty_encoders_give_zero_channels_and_lifting_skips_them():
 def test_every_encoder_manifest_builds_or_names_its_missing_weights(tmp_path, monkeypatch):
     """Each manifest validates; built against an empty weights folder it either needs no
     weights or fails with WeightsNotFound listing the paths it looked in."""
-    from pipeline.config import MANIFEST_DIR, load_encoder_manifest
-    from pipeline.encoders.registry import WeightsNotFound, needs_weights
+    from pipeline.common.config import MANIFEST_DIR, load_encoder_manifest
+    from pipeline.method.encoders.registry import WeightsNotFound, needs_weights
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no hub-cache weights either
     names = sorted(p.stem for p in (MANIFEST_DIR / "encoders").glob("*.yaml"))

@@ -14,8 +14,8 @@ import torch
 
 transformers = pytest.importorskip("transformers")
 
-from pipeline.encoders import dinov2 as d2
-from pipeline.encoders.registry import EncoderSpec, build_encoder, known_encoders
+from pipeline.method.encoders import dinov2 as d2
+from pipeline.method.encoders.registry import EncoderSpec, build_encoder, known_encoders
 
 TINY = {"hidden_size": 32, "num_hidden_layers": 2, "num_attention_heads": 2, "use_swiglu_ffn": False, "image_size": 56}
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.encoders.gedi_ops import (
+from pipeline.method.encoders.gedi_ops import (
     ball_query,
     ball_query_hits,
     first_of_each_key,
@@ -186,7 +186,7 @@ def test_gather_and_group():
 
 # --- GeDi network, frame and encoder --------------------------------------------------------
 
-from pipeline.encoders.gedi import (  # noqa: E402
+from pipeline.method.encoders.gedi import (  # noqa: E402
     STATE_KEY,
     GeDiEncoder,
     GeDiInference,
@@ -197,7 +197,7 @@ from pipeline.encoders.gedi import (  # noqa: E402
     save_random_checkpoint,
     torch_threads,
 )
-from pipeline.encoders.registry import build_encoder, known_encoders  # noqa: E402
+from pipeline.method.encoders.registry import build_encoder, known_encoders  # noqa: E402
 
 # parameter names of the official pnet_model_state_dict (a sample; the strict load checks all)
 OFFICIAL_KEYS = [
@@ -312,7 +312,7 @@ def test_lrf_planar_guard():
 def test_encoder_shape_norm_and_rigid_invariance(gedi_weights):
     import trimesh
 
-    from pipeline.geometry.sampling import sample_surface
+    from pipeline.method.geometry.sampling import sample_surface
 
     mesh = trimesh.creation.capsule(height=60.0, radius=20.0)
     mesh.vertices[:, 0] *= 1.4

@@ -12,7 +12,7 @@ import torch  # noqa: E402
 import trimesh  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from pipeline.encoders.lifting import (  # noqa: E402
+from pipeline.method.encoders.lifting import (  # noqa: E402
     crop_and_resize,
     image_to_crop_coords,
     lift_model_visual_features,
@@ -22,9 +22,9 @@ from pipeline.encoders.lifting import (  # noqa: E402
     square_crop_box,
     upsample_to_crop,
 )
-from pipeline.encoders.registry import VisualEncoder  # noqa: E402
-from pipeline.geometry.sampling import sample_surface  # noqa: E402
-from pipeline.geometry.transforms import look_at_rotation  # noqa: E402
+from pipeline.method.encoders.registry import VisualEncoder  # noqa: E402
+from pipeline.method.geometry.sampling import sample_surface  # noqa: E402
+from pipeline.method.geometry.transforms import look_at_rotation  # noqa: E402
 
 
 class PixelColourEncoder(VisualEncoder):
@@ -102,7 +102,7 @@ def _coloured_sphere() -> tuple[trimesh.Trimesh, np.ndarray]:
 
 @pytest.mark.parametrize("render_size, input_size", [(128, 128), (192, 96)])
 def test_lift_model_visual_features_reproduces_vertex_colours(render_size, input_size):
-    from pipeline.render.renderer import Lighting, Renderer
+    from pipeline.method.render.renderer import Lighting, Renderer
 
     mesh, colours = _coloured_sphere()
     diameter = 2 * 66.0

@@ -1,5 +1,5 @@
-"""``freeze estimate``: the method on one RGB-D image of one object (pipeline/estimate_cli.py,
-pipeline/estimate/).
+"""``freeze estimate``: the method on one RGB-D image of one object (pipeline/commands/estimate/command.py,
+pipeline/commands/estimate/).
 
 A synthetic toy truck (object 8 of the procedural set) standing on a table is rendered
 at a known pose; the estimate must recover it from a mask and from a box alone, and must
@@ -21,10 +21,10 @@ from typer.testing import CliRunner
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from pipeline import estimate as est  # noqa: E402  (the inputs: load_camera, load_rgb, ...)
-from pipeline.estimate import EstimateError  # noqa: E402
-from pipeline.estimate_cli import EstimateResult, estimate  # noqa: E402
-from pipeline.geometry.box_points import box_candidate_points  # noqa: E402
+from pipeline.commands import estimate as est  # noqa: E402  (the inputs: load_camera, load_rgb, ...)
+from pipeline.commands.estimate import EstimateError  # noqa: E402
+from pipeline.commands.estimate.command import EstimateResult, estimate  # noqa: E402
+from pipeline.method.geometry.box_points import box_candidate_points  # noqa: E402
 
 
 # Smaller model side than the default manifest (42 views, 5000 points, 20000 symmetry samples).
@@ -41,7 +41,7 @@ def _rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
 
 
 def _cli() -> typer.Typer:
-    from pipeline.estimate_cli import add_commands
+    from pipeline.commands.estimate.command import add_commands
 
     app, show = typer.Typer(), typer.Typer()
     app.add_typer(show, name="show")
@@ -59,11 +59,11 @@ def case(tmp_path_factory) -> dict:
     """Model PLY, RGB, depth (uint16, 0.1 mm units), mask, camera JSON and the true pose."""
     import trimesh
 
-    from pipeline.bop.dataset import save_depth_png, save_mask_png, save_rgb
-    from pipeline.bop.ply import write_ply
-    from pipeline.render import Renderer
-    from pipeline.geometry.transforms import look_at_rotation
-    from pipeline.synth.objects import build_object
+    from pipeline.formats.bop.dataset import save_depth_png, save_mask_png, save_rgb
+    from pipeline.formats.bop.ply import write_ply
+    from pipeline.method.render import Renderer
+    from pipeline.method.geometry.transforms import look_at_rotation
+    from pipeline.evaluation.synth.objects import build_object
 
     d = tmp_path_factory.mktemp("estimate_case")
     obj = build_object(8)
@@ -113,7 +113,7 @@ def test_recovers_a_known_pose_from_a_mask(case, tmp_path):
     assert rec["sar_reason"].startswith("no symmetry") and rec["sar_variant"] == -1  # the truck has none
     assert rec["model"]["diameter_mm"] == pytest.approx(case["diameter"], rel=1e-3)
     # the frame as a one-image BOP dataset: its prior is the mask given
-    from pipeline.bop import BopDataset, load_detections
+    from pipeline.formats.bop import BopDataset, load_detections
 
     assert res.files["bop"] == tmp_path / "out" / "bop" / "truck"
     (det,) = load_detections(tmp_path / "out" / "bop" / "detections" / "estimate_truck-test.json")
@@ -159,7 +159,7 @@ def test_box_rule_keeps_the_object_and_drops_the_table(case):
 
 @pytest.mark.slow
 def test_cli_writes_pose_overlay_and_stage_artifacts(case, tmp_path, monkeypatch):
-    from pipeline.store import load_arrays, read_manifest, read_table
+    from pipeline.common.store import load_arrays, read_manifest, read_table
 
     _run(case, mask=case["mask"])  # the model side, built by an earlier test of the module or now
     monkeypatch.setenv("FREEZE_CACHE", str(case["cache"]))
@@ -195,7 +195,7 @@ def test_cli_writes_pose_overlay_and_stage_artifacts(case, tmp_path, monkeypatch
                   "refine"):
         assert read_manifest(out / stage)["stage"] == stage
     # the frame as a one-image BOP dataset (default name: the model file's, "model"), read by the BOP reader
-    from pipeline.bop import BopDataset, Target, load_detections
+    from pipeline.formats.bop import BopDataset, Target, load_detections
 
     ds = BopDataset(out / "bop" / "model")
     assert ds.targets() == [Target(1, 0, 1, 1)]
@@ -220,9 +220,9 @@ def test_model_side_keys_follow_the_model_only(case, tmp_path):
     parameters: another image or a scene-side parameter keeps them (the model side is
     reused), another model or model-side parameter changes them. The scene side's keys
     change with the image."""
-    from pipeline.config import load_run_with_overrides
-    from pipeline.estimate.frame import write_frame_dataset
-    from pipeline.estimate_cli import frame_plan
+    from pipeline.common.config import load_run_with_overrides
+    from pipeline.commands.estimate.frame import write_frame_dataset
+    from pipeline.commands.estimate.command import frame_plan
 
     rgb, depth = est.load_rgb(case["rgb"]), case["depth_mm"]
 
@@ -257,7 +257,7 @@ def test_estimate_equals_the_pipeline_on_the_wrapped_frame(case, tmp_path):
     import subprocess
     import sys
 
-    from pipeline.store import read_table
+    from pipeline.common.store import read_table
 
     root = Path(__file__).resolve().parent.parent
     run = tmp_path / "fast.yaml"  # the FAST parameters as a run manifest both can read
@@ -285,7 +285,7 @@ def test_estimate_equals_the_pipeline_on_the_wrapped_frame(case, tmp_path):
 
 
 def test_masks_from_pngs_and_detection_files(case, tmp_path):
-    from pipeline.bop.detections import detection_from_mask, save_detections
+    from pipeline.formats.bop.detections import detection_from_mask, save_detections
 
     mask = case["mask_array"]
     assert np.array_equal(est.load_mask(case["mask"], mask.shape), mask)
@@ -344,7 +344,7 @@ def test_clear_errors_for_missing_files_and_bad_inputs(case, tmp_path, monkeypat
     with pytest.raises(EstimateError, match="--bop-name.*lowercase letters and digits"):
         estimate(case["model"], case["rgb"], case["depth"], case["camera"], bbox=case["bbox"], bop_name="My_Can")
     # a model in metres is refused, with the option that fixes it
-    from pipeline.bop.ply import write_ply
+    from pipeline.formats.bop.ply import write_ply
 
     v = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]], np.float32)
     write_ply(tmp_path / "metres.ply", v, np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]))
@@ -385,7 +385,7 @@ def test_real_linemod_frame_gives_a_pose_inside_the_box(tmp_path):
     assert res.record["model"]["diameter_mm"] == pytest.approx(201.4, abs=0.5)
     assert (tmp_path / "out" / "overlay.png").exists()
     # wrapped by `freeze estimate`, the frame reads back as a BOP dataset
-    from pipeline.bop import BopDataset, load_detections
+    from pipeline.formats.bop import BopDataset, load_detections
 
     ds = BopDataset(tmp_path / "out" / "bop" / "obj000005")
     assert ds.load_rgb(1, 0).shape == (480, 640, 3) and np.array_equal(ds.scene_camera(1)[0].K, K)
@@ -405,7 +405,7 @@ def _cli_args(case: dict, out: Path, *extra: str, rgb: Path | None = None, model
 def test_grey_images_are_detected(tmp_path):
     import cv2
 
-    from pipeline.bop.dataset import save_rgb
+    from pipeline.formats.bop.dataset import save_rgb
 
     rng = np.random.default_rng(0)
     colour = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
@@ -422,15 +422,15 @@ def test_grey_images_are_detected(tmp_path):
         assert said is not None and why in said, name
         assert rgb.shape == (24, 32, 3) and np.array_equal(rgb, est.load_rgb(tmp_path / name))
     # the frame's dataset manifest declares a grey frame as grey datasets are declared
-    from pipeline.config import DatasetManifest
-    from pipeline.estimate.frame import dataset_manifest
+    from pipeline.common.config import DatasetManifest
+    from pipeline.commands.estimate.frame import dataset_manifest
 
     assert DatasetManifest(**dataset_manifest("f", 32, 24, "gray")).image_mode == "gray"
     assert DatasetManifest(**dataset_manifest("f", 32, 24)).image_mode == "rgb"
 
 
 def test_encoder_and_device_flags_are_config_overrides(case, tmp_path, monkeypatch):
-    from pipeline.estimate_cli import merge_flags
+    from pipeline.commands.estimate.command import merge_flags
 
     assert merge_flags({"visual": "colortex", "k": "1"}, visual="colortex", geometric="gedi", device=None) == \
         {"k": "1", "visual_encoder": "colortex", "geometric_encoder": "gedi"}
@@ -472,7 +472,7 @@ def test_grey_frame_gets_grey_templates_and_pose_json_names_its_encoders(case, t
     import cv2
     import yaml
 
-    from pipeline.store import load_arrays
+    from pipeline.common.store import load_arrays
 
     grey = cv2.cvtColor(est.load_rgb(case["rgb"]), cv2.COLOR_RGB2GRAY)
     cv2.imwrite(str(tmp_path / "grey.png"), grey)

@@ -33,7 +33,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from pipeline.bop import (
+from pipeline.formats.bop import (
     BopDataset,
     BopFormatError,
     CameraInfo,
@@ -56,7 +56,7 @@ from pipeline.bop import (
     write_scene_gt_info,
     write_targets,
 )
-from pipeline.bop.detections import (
+from pipeline.formats.bop.detections import (
     detection_from_mask,
     load_detections,
     rle_counts_from_string,
@@ -65,7 +65,7 @@ from pipeline.bop.detections import (
     rle_encode,
     save_detections,
 )
-from pipeline.config import MANIFEST_DIR, ManifestError, RunManifest, load_run
+from pipeline.common.config import MANIFEST_DIR, ManifestError, RunManifest, load_run
 
 # Bounded and reproducible: the same examples on every run (derandomize) and no example
 # database (a failure found once must not change later runs), no per-example deadline
@@ -706,7 +706,7 @@ def test_run_manifest_random_text(manifests, raw):
 def test_score_utf16_and_binary_results_csv_name_file_and_encoding(tmp_path):
     from typer.testing import CliRunner
 
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     valid = _valid_results_csv(tmp_path / "valid.csv").decode()
     utf16 = tmp_path / "utf16.csv"

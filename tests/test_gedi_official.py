@@ -34,8 +34,8 @@ import trimesh
 from scipy.spatial import cKDTree
 from torchgeometry.core.conversions import angle_axis_to_rotation_matrix, quaternion_to_angle_axis
 
-import pipeline.encoders.gedi as gedi
-from pipeline.encoders.gedi import (
+import pipeline.method.encoders.gedi as gedi
+from pipeline.method.encoders.gedi import (
     GeDiEncoder,
     load_gedi_net,
     official_rotation,
@@ -44,7 +44,7 @@ from pipeline.encoders.gedi import (
     save_random_checkpoint,
     torch_threads,
 )
-from pipeline.encoders.gedi_ops import (
+from pipeline.method.encoders.gedi_ops import (
     ball_query,
     ball_query_hits,
     furthest_point_sample,
@@ -52,7 +52,7 @@ from pipeline.encoders.gedi_ops import (
     gather_points,
     radius_squared,
 )
-from pipeline.geometry.sampling import sample_surface
+from pipeline.method.geometry.sampling import sample_surface
 
 COS_MIN = 0.99999  # per 32-d descriptor, ours against the oracle path
 
@@ -346,7 +346,7 @@ def _scene_cloud() -> np.ndarray:
 
 class _OraclePath:
     """Context that puts torchgeometry's rotation and the transcribed kernels (ties as
-    the kernel breaks them) in place of the project's in :mod:`pipeline.encoders.gedi`,
+    the kernel breaks them) in place of the project's in :mod:`pipeline.method.encoders.gedi`,
     and records each network call of ``enc`` (patches, ids, quaternions, output)."""
 
     def __init__(self, enc: GeDiEncoder) -> None:

@@ -1,4 +1,4 @@
-"""Known-answer tests of pipeline.geometry: transforms, sampling, depth, normals."""
+"""Known-answer tests of pipeline.method.geometry: transforms, sampling, depth, normals."""
 
 from __future__ import annotations
 
@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.geometry.depth import lift_depth, project, remove_outliers
-from pipeline.geometry.normals import estimate_normals
-from pipeline.geometry.sampling import (
+from pipeline.method.geometry.depth import lift_depth, project, remove_outliers
+from pipeline.method.geometry.normals import estimate_normals
+from pipeline.method.geometry.sampling import (
     farthest_point_subsample,
     sample_points,
     sample_surface,
     voxel_subsample,
 )
-from pipeline.geometry.transforms import (
+from pipeline.method.geometry.transforms import (
     compose,
     invert,
     look_at_rotation,

@@ -9,10 +9,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from pipeline.geometry.extent import point_cloud_diameter  # noqa: E402
-from pipeline.geometry.icp import refine_icp  # noqa: E402
-from pipeline.geometry.sampling import sample_surface  # noqa: E402
-from pipeline.geometry.transforms import perturb_pose, rotation_angle_deg  # noqa: E402
+from pipeline.formats.bop.extent import point_cloud_diameter  # noqa: E402
+from pipeline.method.refinement.icp import refine_icp  # noqa: E402
+from pipeline.method.geometry.sampling import sample_surface  # noqa: E402
+from pipeline.method.geometry.transforms import perturb_pose, rotation_angle_deg  # noqa: E402
 from registration_scenes import (  # noqa: E402
     SCENE_K,
     SCENE_WH,
@@ -25,7 +25,7 @@ from registration_scenes import (  # noqa: E402
 
 @pytest.fixture(scope="module")
 def partial_views():
-    from pipeline.render.renderer import Renderer
+    from pipeline.method.render.renderer import Renderer
 
     mesh = make_object("rock", seed=1)
     diameter = point_cloud_diameter(mesh.vertices)
@@ -56,8 +56,8 @@ def test_icp_converges_from_5deg_10mm(partial_views):
 def test_icp_and_the_fine_icp_converge_from_larger_perturbations(partial_views, angle, shift):
     """The hypotheses' ICP, then refine's fine ICP (2000 of the candidate's points against
     20000 model samples, from the ICP's pose), from 10 deg / 20 mm and 15 deg / 30 mm."""
-    from pipeline.geometry.depth import lift_depth
-    from pipeline.scene_side import sample_candidate
+    from pipeline.method.geometry.depth import lift_depth
+    from pipeline.method.scene_side import sample_candidate
 
     pts, nrm, diameter, views = partial_views
     mesh = make_object("rock", seed=1)
@@ -81,7 +81,7 @@ def test_icp_needs_normals_for_point_to_plane(partial_views):
 def test_a_prepared_model_gives_the_same_pose(partial_views):
     """An IcpModel (k-d tree built once, as refine keeps per object) and the bare arrays
     give the same result, bit for bit."""
-    from pipeline.geometry.icp import IcpModel
+    from pipeline.method.refinement.icp import IcpModel
 
     pts, nrm, diameter, views = partial_views
     model = IcpModel(pts, nrm)
@@ -103,7 +103,7 @@ def test_icp_leaves_a_cylinder_turned_where_it_started():
     iteration)."""
     import trimesh
 
-    from pipeline.geometry.transforms import rotation_about_axis
+    from pipeline.method.geometry.transforms import rotation_about_axis
 
     mesh = trimesh.creation.cylinder(radius=30.0, height=100.0, sections=96)
     pts, nrm = sample_surface(mesh, 5000, seed=0)
@@ -140,7 +140,7 @@ def test_a_prepared_model_pickles_for_worker_processes(partial_views):
     gives the same pose."""
     import pickle
 
-    from pipeline.geometry.icp import IcpModel
+    from pipeline.method.refinement.icp import IcpModel
 
     pts, nrm, diameter, views = partial_views
     model = IcpModel(pts, nrm)

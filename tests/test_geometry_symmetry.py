@@ -1,7 +1,7 @@
-"""Known-answer tests of pipeline.geometry.symmetry: symmetry estimation from shape.
+"""Known-answer tests of pipeline.method.geometry.symmetry: symmetry estimation from shape.
 
 The ten synthetic objects' geometric symmetries are known exactly (see
-``pipeline.synth.objects``; the cereal box and the can declare none because of their
+``pipeline.evaluation.synth.objects``; the cereal box and the can declare none because of their
 print, but their shapes are a box and a cylinder). Estimating all ten takes ~10-15 s on
 one core, so those tests are marked slow and share one estimate per object.
 """
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.geometry.sampling import sample_surface
-from pipeline.geometry.symmetry import (
+from pipeline.method.geometry.sampling import sample_surface
+from pipeline.method.geometry.symmetry import (
     SymmetryParams,
     SymmetrySet,
     continuous_transform,
@@ -27,9 +27,9 @@ from pipeline.geometry.symmetry import (
     symmetries_to_dict,
     transform_distance,
 )
-from pipeline.geometry.extent import point_cloud_diameter
-from pipeline.geometry.transforms import random_rotation, rotation_about_axis
-from pipeline.synth.objects import build_object
+from pipeline.formats.bop.extent import point_cloud_diameter
+from pipeline.method.geometry.transforms import random_rotation, rotation_about_axis
+from pipeline.evaluation.synth.objects import build_object
 
 N_POINTS = 20000
 ANGLE_TOL_DEG = 2.0
@@ -287,7 +287,7 @@ def test_distinct_under_declared_symmetries():
     """Variants that the declared (shape + texture) symmetries already equate are
     dropped: the cup's print is symmetric too, the can's label is not, and the hex
     nut's declared group is its whole geometric group."""
-    from pipeline.geometry.symmetry import SymmetrySet, distinct_under, expand_symmetries
+    from pipeline.method.geometry.symmetry import SymmetrySet, distinct_under, expand_symmetries
 
     z = {"axis": np.array([0.0, 0.0, 1.0]), "offset": np.zeros(3)}
     flip = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -9,11 +9,11 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.config import RefineParams, RegisterParams
-from pipeline.geometry.transforms import random_rotation, rotation_angle_deg
-from pipeline.registration.fusion import match_signal, modality_weight
-from pipeline.registration.ransac import RansacParams, distinct_poses, ransac_align, ransac_hypotheses
-from pipeline.scene_side import coarse_hypotheses, matchable_model, refine_candidates
+from pipeline.common.config import RefineParams, RegisterParams
+from pipeline.method.geometry.transforms import random_rotation, rotation_angle_deg
+from pipeline.method.registration.fusion import match_signal, modality_weight
+from pipeline.method.registration.ransac import RansacParams, distinct_poses, ransac_align, ransac_hypotheses
+from pipeline.method.scene_side import coarse_hypotheses, matchable_model, refine_candidates
 
 
 def _problem(seed: int, signal: dict[str, float]):
@@ -105,7 +105,7 @@ def test_refine_picks_each_candidates_best_verified_hypothesis():
 
     class Verify:
         def __call__(self, im_id, cand_id, obj_id, R, t, diameter, evidence):
-            from pipeline.registration.verification import Verification
+            from pipeline.method.refinement.verification import Verification
 
             s = scores.get((cand_id, float(t[2])), 0.1)
             return Verification(s, s, s, 0.0, evidence, s)
@@ -123,8 +123,8 @@ def test_refine_picks_each_candidates_best_verified_hypothesis():
 @pytest.fixture(scope="module")
 def rendered_frame():
     """A synthetic object rendered at a known pose: depth with sensor-like noise, the mask."""
-    from pipeline.render import Renderer
-    from pipeline.synth.objects import build_object
+    from pipeline.method.render import Renderer
+    from pipeline.evaluation.synth.objects import build_object
 
     mesh = build_object(8).model
     K = np.array([[572.4, 0.0, 320.0], [0.0, 573.6, 240.0], [0.0, 0.0, 1.0]])
@@ -144,9 +144,9 @@ def rendered_frame():
 
 
 def test_verification_prefers_the_true_pose_over_its_flip(rendered_frame):
-    from pipeline.geometry.crops import mask_to_bbox
-    from pipeline.registration.verification import verification_window, verify_pose
-    from pipeline.render import Renderer
+    from pipeline.method.geometry.crops import mask_to_bbox
+    from pipeline.method.refinement.verification import verification_window, verify_pose
+    from pipeline.method.render import Renderer
 
     f = rendered_frame
     window = verification_window(mask_to_bbox(f["mask"]), f["depth"].shape)
@@ -166,7 +166,7 @@ def test_verification_prefers_the_true_pose_over_its_flip(rendered_frame):
 
 
 def test_occluders_are_neither_evidence_for_nor_against_a_pose():
-    from pipeline.registration.verification import compare_depth
+    from pipeline.method.refinement.verification import compare_depth
 
     rendered = np.zeros((40, 40), np.float32)
     rendered[10:30, 10:30] = 500.0
@@ -216,8 +216,8 @@ def test_turns_of_a_box_are_its_cube_turns_modulo_its_half_turns():
     group itself; a cube has none left; a near-symmetry comes first."""
     import trimesh
 
-    from pipeline.geometry.symmetry import SymmetrySet
-    from pipeline.registration.turns import axis_turns, model_turns
+    from pipeline.method.geometry.symmetry import SymmetrySet
+    from pipeline.method.refinement.turns import axis_turns, model_turns
 
     box = trimesh.creation.box(extents=(40.0, 60.0, 100.0))
     box.apply_translation([5.0, -3.0, 20.0])  # the turns are about the box's centre, not the origin
@@ -241,8 +241,8 @@ def test_turns_of_a_box_are_its_cube_turns_modulo_its_half_turns():
     with_near = model_turns([near], points, SymmetrySet(discrete=halves), 120.0)
     assert len(with_near) == 5 and np.allclose(with_near[0], near)
     cube = trimesh.creation.box(extents=(50.0, 50.0, 50.0))
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.symmetry import estimate_symmetries
+    from pipeline.method.geometry.sampling import sample_surface
+    from pipeline.method.geometry.symmetry import estimate_symmetries
 
     cube_points, cube_normals = sample_surface(cube, 10000, seed=0)
     assert len(model_turns([], cube_points, estimate_symmetries(cube_points, 86.6, cube_normals), 86.6)) == 0
@@ -251,8 +251,8 @@ def test_turns_of_a_box_are_its_cube_turns_modulo_its_half_turns():
 def test_near_symmetries_of_an_almost_square_box_start_with_its_quarter_turn():
     import trimesh
 
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.symmetry import estimate_symmetries
+    from pipeline.method.geometry.sampling import sample_surface
+    from pipeline.method.geometry.symmetry import estimate_symmetries
 
     box = trimesh.creation.box(extents=(100.0, 115.0, 200.0))
     points, normals = sample_surface(box, 10000, seed=0)
@@ -270,10 +270,10 @@ def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wr
     (the toy truck's near-symmetry: chassis and wheels match, cab and cargo do not);
     refinement tries the turns of it, and the verification picks the true pose back,
     recording the turn and its parent. With ``turns`` 0 the wrong pose stays."""
-    from pipeline.geometry.sampling import sample_surface
-    from pipeline.geometry.symmetry import SymmetrySet
-    from pipeline.registration.turns import model_turns, turned
-    from pipeline.scene_side import PoseVerifier, SceneImages
+    from pipeline.method.geometry.sampling import sample_surface
+    from pipeline.method.geometry.symmetry import SymmetrySet
+    from pipeline.method.refinement.turns import model_turns, turned
+    from pipeline.method.scene_side import PoseVerifier, SceneImages
 
     f = rendered_frame
     mesh = f["mesh"]

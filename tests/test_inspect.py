@@ -17,12 +17,12 @@ import typer
 from PIL import Image
 from typer.testing import CliRunner
 
-from pipeline.config import load_run
-from pipeline.artifacts import ArtifactIndex, Removal, collect_garbage, inspect_artifact, list_artifacts
-from pipeline.plan import RunPlan
-from pipeline.report.features_figure import (DPI, FIGSIZE, FeatureCase, draw_features_figure, feature_case,
+from pipeline.common.config import load_run
+from pipeline.workflow.artifacts import ArtifactIndex, Removal, collect_garbage, inspect_artifact, list_artifacts
+from pipeline.workflow.plan import RunPlan
+from pipeline.views.features_figure import (DPI, FIGSIZE, FeatureCase, draw_features_figure, feature_case,
                                              fused_features, inlier_matches, pca_colours)
-from pipeline.store import publish, save_arrays, write_table
+from pipeline.common.store import publish, save_arrays, write_table
 
 DS = "synthtiny"
 N, G, V = 200, 8, 5           # model points, geometric and visual channels
@@ -34,7 +34,7 @@ runner = CliRunner()
 
 def _app() -> typer.Typer:
     """The real `freeze` app (the commands' wiring is part of what is tested)."""
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     return app
 

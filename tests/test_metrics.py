@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.metrics import (
+from pipeline.evaluation.metrics import (
     VSD_TAUS,
     Crop,
     depth_to_distance,
@@ -23,8 +23,8 @@ from pipeline.metrics import (
     vsd_crops,
     vsd_from_distances,
 )
-from pipeline.metrics.evaluate import visib_bin
-from pipeline.metrics.pose_errors import hull_indices, probe_indices
+from pipeline.evaluation.metrics.evaluate import visib_bin
+from pipeline.evaluation.metrics.pose_errors import hull_indices, probe_indices
 
 K = np.array([[572.4114, 0.0, 325.2611], [0.0, 573.57043, 242.04899], [0.0, 0.0, 1.0]])
 RX180 = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -255,7 +255,7 @@ def test_crop_renders_equal_full_renders() -> None:
     nothing rendered outside it, depth within the full render's resolution."""
     import trimesh
 
-    from pipeline.render.renderer import Renderer
+    from pipeline.method.render.renderer import Renderer
 
     rng = np.random.default_rng(5)
     mesh = trimesh.creation.cylinder(radius=35.0, height=120.0, sections=48)

@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.bop import BopDataset, Target
-from pipeline.metrics import evaluate
+from pipeline.formats.bop import BopDataset, Target
+from pipeline.evaluation.metrics import evaluate
 from shared_data import shared_dir, shared_file
 
 HOPE = ("realdata", "hope-val-scene0000")  # under ../shared

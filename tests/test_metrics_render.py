@@ -1,4 +1,4 @@
-"""The scorer's batched depth renderer (pipeline/metrics/depth_render.py) and the VSD on
+"""The scorer's batched depth renderer (pipeline/evaluation/metrics/depth_render.py) and the VSD on
 distance crops: the same pixels and errors as the per-render pyrender path."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from pipeline.metrics import VSD_TAUS, Crop, distance_crop, ray_lengths, vsd_crops, vsd_distance_crops
-from pipeline.metrics import depth_render
-from pipeline.metrics.depth_render import DepthAtlasRenderer, DepthRequest, is_closed_outward, visible_faces
+from pipeline.evaluation.metrics import VSD_TAUS, Crop, distance_crop, ray_lengths, vsd_crops, vsd_distance_crops
+from pipeline.evaluation.metrics import depth_render
+from pipeline.evaluation.metrics.depth_render import DepthAtlasRenderer, DepthRequest, is_closed_outward, visible_faces
 
 # The scorer renders with the principal point shifted by half a pixel (render_offset).
 K = np.array([[572.4114, 0.0, 324.7611], [0.0, 573.57043, 241.54899], [0.0, 0.0, 1.0]])
@@ -52,7 +52,7 @@ def test_closed_outward_meshes_are_recognised() -> None:
 def test_atlas_renders_equal_pyrender_crop_renders() -> None:
     """Same boxes and silhouettes as Renderer.render_depth_crop, depths within its
     resolution, whether the back faces are drawn or skipped; 9 renders per readback."""
-    from pipeline.render.renderer import Renderer
+    from pipeline.method.render.renderer import Renderer
 
     rng = np.random.default_rng(7)
     meshes = _meshes()

@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.bop import BopDataset, read_estimates_json, write_results_csv
-from pipeline.metrics import evaluate, load_scores, score_results_file, vsd_column
+from pipeline.formats.bop import BopDataset, read_estimates_json, write_results_csv
+from pipeline.evaluation.metrics import evaluate, load_scores, score_results_file, vsd_column
 
 DATA = Path(__file__).parent / "data" / "tinybop"
 REF = json.loads((DATA / "reference_scores_tinybop.json").read_text())["variants"]
@@ -78,8 +78,8 @@ def test_batched_renders_give_the_errors_of_single_renders(dataset: BopDataset) 
     estimate of every variant, including image 2 where the box hides 15 % of the
     cylinder (occlusion): MSSD and MSPD identical, VSD within the toolkit tolerance of
     ``test_matches_reference_toolkit`` (the renders differ by float rounding only)."""
-    from pipeline.metrics.calc_errors import ErrorCalculator, ErrorParams
-    from pipeline.metrics.evaluate import _image_jobs
+    from pipeline.evaluation.metrics.calc_errors import ErrorCalculator, ErrorParams
+    from pipeline.evaluation.metrics.evaluate import _image_jobs
 
     est = pd.concat([_estimates(v) for v in VARIANTS], ignore_index=True)
     est["est_id"] = est.groupby(["scene_id", "im_id", "obj_id"], sort=False).cumcount()
@@ -167,9 +167,9 @@ def test_reading_ahead_gives_the_same_rows_and_names_a_bad_depth(tmp_path: Path,
     """``ErrorCalculator.errors_of`` (a reader thread loads models and depth ahead) gives
     every row of ``image_errors`` bit for bit, and a depth image that cannot be read
     fails the job that needs it with the file's name, as without reading ahead."""
-    from pipeline.bop import BopFormatError
-    from pipeline.metrics.calc_errors import ErrorCalculator, ErrorParams
-    from pipeline.metrics.evaluate import _image_jobs
+    from pipeline.formats.bop import BopFormatError
+    from pipeline.evaluation.metrics.calc_errors import ErrorCalculator, ErrorParams
+    from pipeline.evaluation.metrics.evaluate import _image_jobs
 
     est = pd.concat([_estimates(v) for v in VARIANTS], ignore_index=True)
     est["est_id"] = est.groupby(["scene_id", "im_id", "obj_id"], sort=False).cumcount()
@@ -228,7 +228,7 @@ def test_bad_input_is_named(dataset: BopDataset) -> None:
         evaluate(est, dataset, progress=False)
     with pytest.raises(ValueError, match=r"missing column\(s\) \['R'\]"):
         evaluate(_estimates("gt").drop(columns=["R"]), dataset, progress=False)
-    from pipeline.bop import Target
+    from pipeline.formats.bop import Target
 
     with pytest.raises(ValueError, match=r"target object\(s\) \[9\]"):
         evaluate(_estimates("gt"), dataset, targets=[Target(1, 0, 9, 1)], progress=False)
@@ -238,7 +238,7 @@ def test_bad_input_is_named(dataset: BopDataset) -> None:
 def test_per_visibility_breakdown(dataset: BopDataset, variant: str) -> None:
     """Targets are counted in the bin of their visible fraction; the target-weighted
     mean of the per-bin recalls is the overall recall."""
-    from pipeline.metrics.evaluate import VISIB_BIN_EDGES, visib_bin
+    from pipeline.evaluation.metrics.evaluate import VISIB_BIN_EDGES, visib_bin
 
     s = evaluate(_estimates(variant), dataset, progress=False)
     pv = s.per_visibility
@@ -280,7 +280,7 @@ def test_timing_split_is_reported(tmp_path: Path) -> None:
 
 
 def test_malformed_results_file_names_the_line(tmp_path: Path) -> None:
-    from pipeline.bop import BopFormatError
+    from pipeline.formats.bop import BopFormatError
 
     csv = tmp_path / "gt_icbin-test.csv"
     write_results_csv(csv, _estimates("gt"))
@@ -314,7 +314,7 @@ def _rotation_z(deg: float) -> np.ndarray:
 
 
 def test_rotation_deviations() -> None:
-    from pipeline.metrics.evaluate import rotation_deviations
+    from pipeline.evaluation.metrics.evaluate import rotation_deviations
 
     R = np.stack([_rotation_z(30), np.zeros((3, 3)), 1.01 * np.eye(3), np.diag([1.0, 1.0, -1.0])])
     ortho, det = rotation_deviations(R)
@@ -330,7 +330,7 @@ def test_rotation_deviations() -> None:
     (np.array([[1.0, 0.01, 0], [0, 1, 0], [0, 0, 1]]), "max|R^T R - I| = 0.01, "),  # a shear (det 1)
 ])
 def test_an_r_that_is_not_a_rotation_is_refused(dataset: BopDataset, bad: np.ndarray, deviation: str) -> None:
-    from pipeline.metrics import NotARotationError
+    from pipeline.evaluation.metrics import NotARotationError
 
     est = _estimates("gt")
     for i in (2, 4):
@@ -349,8 +349,8 @@ def test_an_r_that_is_not_a_rotation_is_refused(dataset: BopDataset, bad: np.nda
 def test_rotations_within_the_tolerance_score_as_the_toolkit(dataset: BopDataset) -> None:
     """R written with few digits (deviation 1e-4 < ROTATION_TOLERANCE) is accepted and
     scores as the exact one."""
-    from pipeline.metrics import ROTATION_TOLERANCE
-    from pipeline.metrics.evaluate import rotation_deviations
+    from pipeline.evaluation.metrics import ROTATION_TOLERANCE
+    from pipeline.evaluation.metrics.evaluate import rotation_deviations
 
     est = _estimates("tx20")
     rounded = est.copy()
@@ -364,8 +364,8 @@ def test_rotations_within_the_tolerance_score_as_the_toolkit(dataset: BopDataset
 
 
 def test_results_file_with_a_bad_r_names_the_file_and_writes_nothing(tmp_path: Path) -> None:
-    from pipeline.bop import BopFormatError
-    from pipeline.metrics.evaluate import unscored_summary
+    from pipeline.formats.bop import BopFormatError
+    from pipeline.evaluation.metrics.evaluate import unscored_summary
 
     est = _estimates("gt")
     est.at[5, "R"] = np.zeros((3, 3))
@@ -387,7 +387,7 @@ def test_score_stage_fails_on_a_bad_r_and_publishes_nothing(tmp_path: Path) -> N
     import contextlib
     from types import SimpleNamespace
 
-    from pipeline.metrics import NotARotationError
+    from pipeline.evaluation.metrics import NotARotationError
     from stages import score as score_stage
 
     est = _estimates("gt")

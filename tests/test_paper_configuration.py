@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.encoders import dinov2 as d2
-from pipeline.encoders.gedi import save_random_checkpoint
-from pipeline.stand_in import paper_configuration
+from pipeline.method.encoders import dinov2 as d2
+from pipeline.method.encoders.gedi import save_random_checkpoint
+from pipeline.common.stand_in import paper_configuration
 from test_encoders_dinov2 import _to_official
 from test_estimate import FAST, case  # noqa: F401  (the synthetic frame fixture)
 
@@ -45,8 +45,8 @@ def paper_weights(tmp_path, monkeypatch):
 
 
 def test_the_paper_s_configuration_runs_end_to_end(case, paper_weights, tmp_path):  # noqa: F811
-    from pipeline.estimate_cli import estimate
-    from pipeline.store import load_arrays, read_manifest
+    from pipeline.commands.estimate.command import estimate
+    from pipeline.common.store import load_arrays, read_manifest
 
     paper = paper_configuration()
     assert (paper["geometric"][0], paper["visual"][0]) == ("gedi", "dinov2-vitg14")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.bop import read_results_csv
+from pipeline.formats.bop import read_results_csv
 
 from conftest import current_dir, run_snakemake
 
@@ -46,8 +46,8 @@ MAIN_JOB_AR_FLOOR = 0.50
 
 def _scores(work: Path, dataset: str = "synthtiny") -> dict:
     """The score summary of ``dataset`` in the default run's plan under ``work/cache``."""
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     score = RunPlan(load_run({"datasets": dataset}), cache=work / "cache")[dataset]["score"]
     return json.loads(score.manifest("all").read_text())["summary"]
@@ -80,7 +80,7 @@ def test_bop_all_produces_scores_and_a_bop_csv(tiny_run):
     assert (work / "results" / "ar_table.md").read_text().count("synthtiny") == 1
     assert "<html" in (work / "results" / "report_synthtiny.html").read_text()[:500].lower()  # bop_all's report
     # The per-object PCA bases are stored and orthonormal.
-    from pipeline.store import load_arrays
+    from pipeline.common.store import load_arrays
 
     pca = load_arrays(current_dir(work, "register") / "scene_000001" / "pca.zarr")
     assert len(pca["obj_id"]) >= 2
@@ -121,7 +121,7 @@ def test_geometry_only_and_vision_only_runs(tiny_run):
     """`visual=none` / `geometric=none` (the paper's ablations) run the same pipeline with
     one part switched off; the other stages are reused. (The vision-only run goes as far
     as register, which the assertions read.)"""
-    from pipeline.store import load_arrays, read_table
+    from pipeline.common.store import load_arrays, read_table
 
     work, _ = tiny_run
     jobs = _planned_jobs(_snakemake(work, "visual=none", dry=True))
@@ -138,8 +138,8 @@ def test_geometry_only_and_vision_only_runs(tiny_run):
 
     # Vision alone, as far as register (what the assertions below read): refine and score
     # ran above for geometry alone.
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     vis_plan = RunPlan(load_run({"datasets": "synthtiny", "geometric": "none"}), cache=work / "cache")["synthtiny"]
     run_snakemake(work, "geometric=none",
@@ -164,17 +164,17 @@ def test_multi_instance_targets_get_distinct_hypotheses(tiny_run):
     target are distinct instances; and from clean candidates (each instance's ground
     truth mask, twice) the library chain register -> ICP -> select_estimates gives one
     estimate on each instance and suppresses the duplicate hypotheses (the scene side's
-    library functions, pipeline/scene_side.py, on candidates made here)."""
+    library functions, pipeline/method/scene_side.py, on candidates made here)."""
     from types import SimpleNamespace
 
-    from pipeline.bop import BopDataset
-    from pipeline.config import load_run
-    from pipeline.geometry.crops import mask_to_bbox
-    from pipeline.geometry.icp import refine_icp
-    from pipeline.plan import build_encoders
-    from pipeline.registration.selection import registration_evidence, select_estimates
-    from pipeline.scene_side import CandidateMask, coarse_pose, matchable_model, scene_features
-    from pipeline.store import load_arrays, read_table
+    from pipeline.formats.bop import BopDataset
+    from pipeline.common.config import load_run
+    from pipeline.method.geometry.crops import mask_to_bbox
+    from pipeline.method.refinement.icp import refine_icp
+    from pipeline.workflow.plan import build_encoders
+    from pipeline.method.refinement.selection import registration_evidence, select_estimates
+    from pipeline.method.scene_side import CandidateMask, coarse_pose, matchable_model, scene_features
+    from pipeline.common.store import load_arrays, read_table
 
     work, _ = tiny_run
     cache = work / "cache" / "synthtiny"
@@ -240,7 +240,7 @@ def test_symmetries_and_sar_artifacts(tiny_run):
     """Symmetries are estimated per object; SAR runs only where the geometric symmetries
     go beyond the declared ones (the can: its label breaks its shape's symmetry), and
     records the similarity of every variant its coarse-to-fine search scored."""
-    from pipeline.store import read_table
+    from pipeline.common.store import read_table
 
     work, _ = tiny_run
     sym = {int(p.parent.name[4:]): json.loads(p.read_text())

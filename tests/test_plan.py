@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline import config as cfg
-from pipeline.plan import RunPlan
-from pipeline.store import make_key
+from pipeline.common import config as cfg
+from pipeline.workflow.plan import RunPlan
+from pipeline.common.store import make_key
 
 MODEL_SIDE = ("synth", "render_templates", "segment_prior")
 ENCODER_DEPENDENT = ("model_features", "scene_features", "register", "refine", "score")
@@ -130,7 +130,7 @@ def test_renamed_values_keep_their_keys():
 
 def test_a_dataset_manifest_given_as_a_path(tmp_path):
     """`datasets=path/to/name.yaml` (what `freeze estimate` writes) plans like a named one."""
-    from pipeline.config import load_dataset_manifest
+    from pipeline.common.config import load_dataset_manifest
 
     text = (cfg.MANIFEST_DIR / "datasets" / "synthtiny.yaml").read_text()
     path = tmp_path / "mytiny.yaml"

@@ -1,4 +1,4 @@
-"""Symmetry-aware refinement (pipeline.refinement.sar): crop rendering, symmetric
+"""Symmetry-aware refinement (pipeline.method.refinement.sar): crop rendering, symmetric
 variants, the similarity score, and known-answer scenes where only the texture tells
 the symmetric poses apart (soup can, cereal box) or nothing does (cup)."""
 
@@ -14,16 +14,16 @@ import pytest  # noqa: E402
 import trimesh  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from pipeline.encoders.lifting import crop_and_resize, image_to_crop_coords, mask_to_bbox, square_crop_box  # noqa: E402
-from pipeline.encoders.registry import VisualEncoder, build_encoder  # noqa: E402
-from pipeline.geometry.transforms import (  # noqa: E402
+from pipeline.method.encoders.lifting import crop_and_resize, image_to_crop_coords, mask_to_bbox, square_crop_box  # noqa: E402
+from pipeline.method.encoders.registry import VisualEncoder, build_encoder  # noqa: E402
+from pipeline.method.geometry.transforms import (  # noqa: E402
     look_at_rotation,
     perturb_pose,
     rotation_about_axis,
     rotation_angle_deg,
     rt_to_matrix,
 )
-from pipeline.refinement.sar import (  # noqa: E402
+from pipeline.method.refinement.sar import (  # noqa: E402
     cell_cover,
     coarse_variants,
     crop_intrinsics,
@@ -34,9 +34,9 @@ from pipeline.refinement.sar import (  # noqa: E402
     variant_angles,
     variant_poses,
 )
-from pipeline.render.renderer import Light, Lighting, Renderer  # noqa: E402
-from pipeline.synth.objects import build_object  # noqa: E402
-from pipeline.synth.sensor import simulate_rgb  # noqa: E402
+from pipeline.method.render.renderer import Light, Lighting, Renderer  # noqa: E402
+from pipeline.evaluation.synth.objects import build_object  # noqa: E402
+from pipeline.evaluation.synth.sensor import simulate_rgb  # noqa: E402
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])

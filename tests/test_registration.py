@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.geometry.transforms import random_rotation, rotation_angle_deg
-from pipeline.registration.fusion import apply_pca, fit_pca, fuse
-from pipeline.registration.ransac import (
+from pipeline.method.geometry.transforms import random_rotation, rotation_angle_deg
+from pipeline.method.registration.fusion import apply_pca, fit_pca, fuse
+from pipeline.method.registration.ransac import (
     RansacParams,
     build_correspondences,
     feature_neighbours,
@@ -194,7 +194,7 @@ def _cands(rows):
 def test_select_estimates_keeps_distinct_instances_in_rank_order():
     from types import SimpleNamespace as T
 
-    from pipeline.registration.selection import select_estimates
+    from pipeline.method.refinement.selection import select_estimates
 
     # target (1, 0, 7) has two instances, 100 mm apart; candidates 0 and 1 are the same
     # instance (5 mm apart, diameter 80 mm); candidate 3 is weak; object 9 is one instance
@@ -234,7 +234,7 @@ def test_select_estimates_keeps_distinct_instances_in_rank_order():
 
 
 def test_fit_triangles_matches_kabsch_on_noisy_and_mirrored_triples():
-    from pipeline.registration.ransac import fit_triangles
+    from pipeline.method.registration.ransac import fit_triangles
 
     rng = np.random.default_rng(5)
     B = 500
@@ -267,7 +267,7 @@ def test_fit_triangles_matches_kabsch_on_noisy_and_mirrored_triples():
 def test_edge_lengths_of_sampled_triangles_are_exact():
     import math
 
-    from pipeline.registration.ransac import _edge_lengths
+    from pipeline.method.registration.ransac import _edge_lengths
 
     # Integer coordinates: every squared length is an exact integer, so the batched
     # lengths must equal the correctly rounded ones to the bit, edge by edge.
@@ -281,7 +281,7 @@ def test_edge_lengths_of_sampled_triangles_are_exact():
 
 
 def test_squared_residuals_expansion_matches_direct():
-    from pipeline.registration.ransac import _score_terms, _squared_residuals
+    from pipeline.method.registration.ransac import _score_terms, _squared_residuals
 
     rng = np.random.default_rng(6)
     src, dst = rng.normal(size=(400, 3)) * 40, rng.normal(size=(400, 3)) * 40
@@ -303,7 +303,7 @@ def test_batched_ransac_recovers_a_known_transform_from_correspondences_with_out
     the rest random pairs. The winner is the pose; its count is the consistent pairs
     (plus rare lucky outliers); the winner does not depend on the pool size and a seed
     gives the same answer twice."""
-    from pipeline.registration.ransac import _ransac_numpy
+    from pipeline.method.registration.ransac import _ransac_numpy
 
     rng = np.random.default_rng(8)
     C, n_good = 1500, 180

@@ -10,20 +10,20 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from pipeline.encoders.lifting import (  # noqa: E402
+from pipeline.method.encoders.lifting import (  # noqa: E402
     lift_model_visual_features,
     lift_scene_visual_features,
     mask_to_bbox,
 )
-from pipeline.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
-from pipeline.geometry.depth import lift_depth, remove_outliers  # noqa: E402
-from pipeline.geometry.extent import point_cloud_diameter  # noqa: E402
-from pipeline.geometry.icp import refine_icp  # noqa: E402
-from pipeline.geometry.sampling import sample_points, sample_surface  # noqa: E402
-from pipeline.geometry.transforms import rotation_angle_deg  # noqa: E402
-from pipeline.registration.fusion import apply_pca, fit_pca, fuse  # noqa: E402
-from pipeline.registration.ransac import RansacParams, ransac_align  # noqa: E402
-from pipeline.render.templates import render_templates, template_views  # noqa: E402
+from pipeline.method.encoders.registry import EncoderSpec, build_encoder  # noqa: E402
+from pipeline.method.geometry.depth import lift_depth, remove_outliers  # noqa: E402
+from pipeline.formats.bop.extent import point_cloud_diameter  # noqa: E402
+from pipeline.method.refinement.icp import refine_icp  # noqa: E402
+from pipeline.method.geometry.sampling import sample_points, sample_surface  # noqa: E402
+from pipeline.method.geometry.transforms import rotation_angle_deg  # noqa: E402
+from pipeline.method.registration.fusion import apply_pca, fit_pca, fuse  # noqa: E402
+from pipeline.method.registration.ransac import RansacParams, ransac_align  # noqa: E402
+from pipeline.method.render.templates import render_templates, template_views  # noqa: E402
 from registration_scenes import (  # noqa: E402
     SCENE_K,
     SCENE_WH,
@@ -41,7 +41,7 @@ pytestmark = pytest.mark.slow  # model sides and many renders: seconds per test
 @pytest.fixture(scope="module", params=["rock", "blocks"])
 def case(request):
     """Model-side features and three rendered partial views of one object."""
-    from pipeline.render.renderer import Renderer
+    from pipeline.method.render.renderer import Renderer
 
     kind = request.param
     geo = build_encoder(EncoderSpec(name="fpfh"))  # defaults: radii [0.3, 0.4]

@@ -22,10 +22,10 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import ROOT, current_dir
-from pipeline.cache_verify import verify_cache
-from pipeline.cli import app
-from pipeline.config import ManifestError, load_run
-from pipeline.store import (DamagedArtifact, MANIFEST_NAME, ensure_sound, publish, read_manifest,
+from pipeline.commands.verify import verify_cache
+from pipeline.commands.cli import app
+from pipeline.common.config import ManifestError, load_run
+from pipeline.common.store import (DamagedArtifact, MANIFEST_NAME, ensure_sound, publish, read_manifest,
                             save_arrays, verify_item, write_table)
 
 FREEZE = Path(sys.executable).parent / "freeze"
@@ -223,7 +223,7 @@ def test_a_full_disk_is_one_line_naming_what_was_being_published(tmp_path, monke
     version intact, no temporary folder left."""
     import errno
 
-    from pipeline.store import StorageError
+    from pipeline.common.store import StorageError
 
     item = _publish_item(tmp_path)
     before = read_manifest(item)["files"]
@@ -231,12 +231,12 @@ def test_a_full_disk_is_one_line_naming_what_was_being_published(tmp_path, monke
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("pipeline.store.write_table", full)
+    monkeypatch.setattr("pipeline.common.store.write_table", full)
     with pytest.raises(StorageError, match=r"scene_000001: cannot write it \(no space left on the device\); nothing "
                                            "was published"):
         with publish(item, stage="register", item="scene_000001", key="k" * 40, signature="x-kkkkkkkk", params={},
                      upstream={}, code_version=1, dataset="d") as w:
-            from pipeline import store
+            from pipeline.common import store
 
             store.write_table(pd.DataFrame({"a": [1]}), w.dir / "candidates.parquet")
     assert read_manifest(item)["files"] == before and verify_item(item) == []
@@ -276,7 +276,7 @@ def test_a_dataset_whose_candidates_are_all_dropped_says_why_next_to_the_table(d
 def test_readers_name_the_damaged_file(tmp_path):
     """Read without verifying first (a library user, a report), a truncated table or a
     deleted array is still one error naming the file, not ArrowInvalid or KeyError."""
-    from pipeline.store import load_arrays, read_table
+    from pipeline.common.store import load_arrays, read_table
 
     item = _publish_item(tmp_path)
     table = item / "candidates.parquet"

@@ -2,7 +2,7 @@
 ``freeze table`` and ``freeze report`` (issue 28, items on verify, output paths, read-only
 caches, ``--vsd-delta``, ``freeze score`` progress and mixed times).
 
-Each fault is set up, the real command runs (typer's CliRunner on ``pipeline.cli.app``),
+Each fault is set up, the real command runs (typer's CliRunner on ``pipeline.commands.cli.app``),
 and the test asserts the exit code, the one-line message, and, for verify, that nothing
 but what it owns changed: every path and content hash under the cache (and under the
 target of a link out of it) is compared before and after.
@@ -25,9 +25,9 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import current_dir
-from pipeline.bop.results import read_estimates_json, write_results_csv
-from pipeline.cli import app
-from pipeline.store import MANIFEST_NAME, publish, read_manifest, save_arrays, write_table
+from pipeline.formats.bop.results import read_estimates_json, write_results_csv
+from pipeline.commands.cli import app
+from pipeline.common.store import MANIFEST_NAME, publish, read_manifest, save_arrays, write_table
 # The estimate's test case (a rendered truck, its model, camera and mask; a module fixture)
 # and the smaller model side it runs with.
 from test_estimate import FAST, case  # noqa: F401
@@ -72,7 +72,7 @@ def assert_only_removed(before: dict[str, str], after: dict[str, str], removed: 
 
 def make_item(item_dir: Path, *, dataset: str = "d") -> Path:
     """A real artifact at ``item_dir`` (``.../<stage>/<signature>/<item>``) published with
-    :func:`pipeline.store.publish`: a Zarr store and a Parquet table."""
+    :func:`pipeline.common.store.publish`: a Zarr store and a Parquet table."""
     stage, signature, item = item_dir.parent.parent.name, item_dir.parent.name, item_dir.name
     with publish(item_dir, stage=stage, item=item, key=signature[-8:] * 5, signature=signature, params={},
                  upstream={}, code_version=1, dataset=dataset) as w:
@@ -219,7 +219,7 @@ def test_repair_on_a_read_only_cache_is_one_line_naming_the_item(cache, monkeypa
     def read_only(path, *args, **kwargs):  # what the file system says at the first unlink
         raise OSError(errno.EROFS, "Read-only file system", "candidates.parquet")
 
-    monkeypatch.setattr("pipeline.cache_verify.shutil.rmtree", read_only)
+    monkeypatch.setattr("pipeline.commands.verify.shutil.rmtree", read_only)
     res = verify(cache, "--repair")
     assert res.exit_code == 1, res.output
     line = one_line(res.output, "cannot remove")
@@ -311,7 +311,7 @@ def test_score_refuses_a_vsd_delta_that_is_not_a_finite_positive_number(results_
 
 
 def test_the_library_refuses_such_a_vsd_delta_too(results_csv):
-    from pipeline.metrics import score_results_file
+    from pipeline.evaluation.metrics import score_results_file
 
     with pytest.raises(ValueError, match=r"vsd_delta must be a finite number of mm > 0, got nan"):
         score_results_file(results_csv, TINYBOP / "icbin", vsd_delta=float("nan"))
@@ -325,7 +325,7 @@ def _strict_json(text: str):
 
 
 def test_scores_json_never_holds_nan_or_infinity(results_csv, tmp_path, monkeypatch):
-    from pipeline.metrics.evaluate import Scores
+    from pipeline.evaluation.metrics.evaluate import Scores
 
     out = tmp_path / "scores"
     res = _score(results_csv, "--out", str(out), "--no-progress", "--vsd-delta", "15")
@@ -398,7 +398,7 @@ def _env(work: Path) -> dict[str, str]:
 def test_a_real_estimate_beside_a_run_verifies_clean_and_survives_repair(work, case):
     """After one `freeze estimate` into the run's cache, verify checks its five-deep
     model and scene sides with the run's artifacts, and --repair removes nothing."""
-    from pipeline.estimate_cli import estimate
+    from pipeline.commands.estimate.command import estimate
 
     res = estimate(case["model"], case["rgb"], case["depth"], case["camera"], overrides=FAST, cache=work / "cache",
                    mask=case["mask"])
@@ -453,7 +453,7 @@ def test_report_on_a_read_only_cache_is_one_line(work, monkeypatch):
     """Without --out the report goes to <cache>/../results; on a read-only disk the write
     (here refused at the call that creates the file, as a read-only mount does) is one
     line naming the file, exit 1."""
-    from pipeline import published_files
+    from pipeline.common import published_files
 
     def read_only(path, *args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system", str(path))

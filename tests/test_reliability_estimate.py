@@ -2,7 +2,7 @@
 (issue 28: the --out folder, output paths, a prior below min_area, absurd intrinsics,
 the printed follow-up command, bad -c values).
 
-Each case runs the real command (`pipeline.cli.app` through typer's CliRunner) on the
+Each case runs the real command (`pipeline.commands.cli.app` through typer's CliRunner) on the
 synthetic frame of tests/test_estimate.py and asserts the message, the exit code, and,
 where the issue asks, that nothing outside what the command owns changed: a snapshot of
 every path and its bytes under the folder holding --out. The cases refused at input
@@ -27,12 +27,12 @@ from typer.testing import CliRunner
 
 from test_estimate import FAST_ARGS, _run, case  # noqa: F401  (the synthetic frame fixture)
 
-from pipeline.estimate import EstimateError, check_intrinsics, load_camera
-from pipeline.estimate.output import MARKER, OUTPUT_NAMES, TEMP_PREFIX
+from pipeline.commands.estimate import EstimateError, check_intrinsics, load_camera
+from pipeline.commands.estimate.output import MARKER, OUTPUT_NAMES, TEMP_PREFIX
 
 
 def _app():
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     return app
 
@@ -145,7 +145,7 @@ def test_reruns_replace_only_their_own_outputs_and_the_printed_command_is_quoted
                        f"datasets={out / 'bop' / 'model.yaml'}"]
     comment = (out / "bop" / "model.yaml").read_text().splitlines()[1]
     assert shlex.split(comment.lstrip("# ")) == command
-    ds_arg = line.split("pipeline.bop.BopDataset(", 1)[1].split("), or run", 1)[0]
+    ds_arg = line.split("pipeline.formats.bop.BopDataset(", 1)[1].split("), or run", 1)[0]
     assert Path(eval(ds_arg)) == out / "bop" / "model"  # a Python string literal of the path
     first_pose = (out / "pose.json").read_bytes()
 
@@ -206,7 +206,7 @@ def test_a_full_disk_while_writing_the_frame_is_one_line_and_leaves_nothing(case
     """ENOSPC at the frame's first image (simulated at the write call): one line naming
     the file at its place under --out and the reason (not the image's extension), no stage
     run, and the folder the run created is gone again."""
-    _full_disk_at(monkeypatch, "pipeline.bop.dataset", "write_image")
+    _full_disk_at(monkeypatch, "pipeline.formats.bop.dataset", "write_image")
     out = tmp_path / "new" / "out"
     line = _one_error(_invoke(case, tmp_path / "cache", _args(case, out), monkeypatch))
     assert f"--out {out}: cannot write {out / 'bop'}" in line and "no space left on the device" in line
@@ -224,7 +224,7 @@ def test_a_full_disk_after_the_stages_leaves_the_previous_outputs(built, tmp_pat
     out = tmp_path / "out"
     assert _invoke(case, case["cache"], _args(case, out), monkeypatch).exit_code == 0
     before = _snapshot(tmp_path)
-    _full_disk_at(monkeypatch, "pipeline.store", "atomic_write_text", when=lambda p: p.name == "pose.json")
+    _full_disk_at(monkeypatch, "pipeline.common.store", "atomic_write_text", when=lambda p: p.name == "pose.json")
     x, y, w, h = case["bbox"]
     line = _one_error(_invoke(case, case["cache"], _args(case, out, prior=("--bbox", f"{x},{y},{w},{h}")),
                               monkeypatch))
@@ -275,7 +275,7 @@ def test_a_real_full_disk_is_one_line_and_leaves_nothing(case, tmp_path, monkeyp
 
 
 def test_a_tiny_mask_is_refused_before_any_stage_runs(case, tmp_path, monkeypatch):
-    from pipeline.bop.dataset import save_mask_png
+    from pipeline.formats.bop.dataset import save_mask_png
 
     tiny = np.zeros_like(case["mask_array"])
     v, u = np.nonzero(case["mask_array"])

@@ -29,10 +29,10 @@ import pytest
 import trimesh
 from typer.testing import CliRunner
 
-from pipeline.bop import write_ply
-from pipeline.bop.dataset import intrinsics_problem
-from pipeline.cli import app
-from pipeline.config import ManifestError, load_run, load_run_with_overrides
+from pipeline.formats.bop import write_ply
+from pipeline.formats.bop.dataset import intrinsics_problem
+from pipeline.commands.cli import app
+from pipeline.common.config import ManifestError, load_run, load_run_with_overrides
 from test_datasets_check import BOXES, H, K, W, check, write_lmo
 
 FREEZE = Path(sys.executable).parent / "freeze"
@@ -347,7 +347,7 @@ def test_a_run_on_zero_intrinsics_exits_non_zero_with_the_line_in_the_job_log(lm
     """`freeze run` up to scene_features (segment_prior, then the refusing job; the
     model side is not needed to show it): the run exits non-zero instead of 0 with AR 0,
     and the job's log holds the one line naming the file and the field."""
-    from pipeline.plan import RunPlan
+    from pipeline.workflow.plan import RunPlan
 
     root, ds = lmo
     path = ds / "test" / "000001" / "scene_camera.json"
@@ -368,8 +368,8 @@ def test_a_message_holding_brackets_is_printed_whole():
     /data/[v2]/models, a list of values) is not taken for rich markup and lost."""
     import typer
 
-    from pipeline.cli_common import guard_commands
-    from pipeline.config import ManifestError
+    from pipeline.commands.common import guard_commands
+    from pipeline.common.config import ManifestError
 
     demo = typer.Typer()
 
@@ -390,8 +390,8 @@ def test_a_message_holding_brackets_is_printed_whole():
 def test_a_results_file_without_ground_truth_counts_a_repeated_target_once(tmp_path):
     """The summary of an unscored results file counts targets as the scorer does: a
     target line given twice counts once, with the later line's inst_count."""
-    from pipeline.bop.dataset import Target
-    from pipeline.metrics.evaluate import unscored_summary
+    from pipeline.formats.bop.dataset import Target
+    from pipeline.evaluation.metrics.evaluate import unscored_summary
 
     csv = tmp_path / "m_d-test.csv"
     csv.write_text("scene_id,im_id,obj_id,score,R,t,time\n"

@@ -24,8 +24,8 @@ import pandas as pd
 import pytest
 
 from conftest import ROOT, current_dir, run_snakemake
-from pipeline.run_cli import incomplete_marks, snakemake_processes
-from pipeline.store import MANIFEST_NAME, read_manifest
+from pipeline.commands.run import incomplete_marks, snakemake_processes
+from pipeline.common.store import MANIFEST_NAME, read_manifest
 
 FREEZE = Path(sys.executable).parent / "freeze"
 SNAKEMAKE = Path(sys.executable).parent / "snakemake"
@@ -185,10 +185,10 @@ def _start_run(work: Path) -> subprocess.Popen:
 
 
 def _wait_for_a_job(work: Path, proc: subprocess.Popen, timeout: float = 300) -> None:
-    """Until a stage job of the run (`python -m pipeline.cli stage ...`) is running."""
+    """Until a stage job of the run (`python -m pipeline.commands.cli stage ...`) is running."""
     deadline = time.time() + timeout
     while proc.poll() is None and time.time() < deadline:
-        if any("pipeline.cli stage" in cmd for cmd in _processes_in(work)):
+        if any("pipeline.commands.cli stage" in cmd for cmd in _processes_in(work)):
             return
         time.sleep(0.05)
     raise AssertionError(f"no job running (exit {proc.poll()}): {(work / 'run.out').read_text()[-2000:]}")
@@ -275,7 +275,7 @@ def test_a_mark_left_on_a_published_output_is_judged_once_then_removed(tiny_run,
 def bop_without_prior(tmp_path_factory) -> Path:
     """A bop_root holding 'lmo' (the tiny synthetic dataset) without its default
     detections file, and a dataset manifest whose prior escapes the root."""
-    from pipeline.synth import generate
+    from pipeline.evaluation.synth import generate
 
     root = tmp_path_factory.mktemp("bop")
     generate(root / "lmo", name="lmo", preset="tiny", seed=0, progress=False)
@@ -315,7 +315,7 @@ def _failing_item(shared: None, item: int) -> int:
 def test_a_dask_scheduler_lost_mid_job_is_one_line_naming_it_and_the_resume_command(capfd):
     from distributed import LocalCluster
 
-    from pipeline.parallel import SchedulerLost, work_mapper
+    from pipeline.common.parallel import SchedulerLost, work_mapper
 
     cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None)
     address = cluster.scheduler_address
@@ -369,7 +369,7 @@ def test_a_generic_profile_whose_status_script_path_needs_quoting_is_quoted_or_r
     clone under ``a b;x``, `freeze run` would pass it quoted, and a plain `snakemake
     --profile` stops before any job with one line (here with an `sbatch` that fails, so
     that nothing could be submitted anyway)."""
-    from pipeline.cluster_submit import needs_quoting, profile_status_command, unquoted_status_command
+    from pipeline.workflow.cluster_submit import needs_quoting, profile_status_command, unquoted_status_command
 
     clone = tmp_path / "a b;touch pwned"
     shutil.copytree(ROOT / "profiles" / "slurm-generic", clone / "profiles" / "slurm-generic")

@@ -26,15 +26,15 @@ from typer.testing import CliRunner
 from test_weights_fetch import (GEDI_MEMBER, Loopback, _manifest, _no_proxy, _official_manifest,  # noqa: F401
                                 _sha, _torch_bytes, gedi_zip, server, tiny_arch, tiny_dinov2)
 
-from pipeline import config as cfg
-from pipeline.cli import app
-from pipeline.config import WeightDownload
-from pipeline.encoders import dinov2 as d2
-from pipeline.encoders.gedi import load_gedi_net
-from pipeline.encoders.registry import build_encoder
-from pipeline.weights import NotAWeightsFile, WeightsFetchError, fetch_download, part_path, sidecar_path
-from pipeline.weights import fetch as fetch_mod
-from pipeline.weights.fetch import part_meta_path
+from pipeline.common import config as cfg
+from pipeline.commands.cli import app
+from pipeline.common.config import WeightDownload
+from pipeline.method.encoders import dinov2 as d2
+from pipeline.method.encoders.gedi import load_gedi_net
+from pipeline.method.encoders.registry import build_encoder
+from pipeline.formats.weights import NotAWeightsFile, WeightsFetchError, fetch_download, part_path, sidecar_path
+from pipeline.formats.weights import fetch as fetch_mod
+from pipeline.formats.weights.fetch import part_meta_path
 
 runner = CliRunner()
 HTML = b"<!DOCTYPE html><html><head><title>Sign in</title></head><body>no</body></html>"
@@ -443,8 +443,8 @@ def _estimate_frame(d: Path) -> dict:
     import numpy as np
     import trimesh
 
-    from pipeline.bop.dataset import save_depth_png, save_mask_png, save_rgb
-    from pipeline.bop.ply import write_ply
+    from pipeline.formats.bop.dataset import save_depth_png, save_mask_png, save_rgb
+    from pipeline.formats.bop.ply import write_ply
 
     d.mkdir(parents=True)
     cube = trimesh.creation.box(extents=[50, 50, 50])

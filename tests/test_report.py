@@ -20,7 +20,7 @@ import typer
 from typer.testing import CliRunner
 
 from conftest import current_dir
-from pipeline.report.html import CORRECT_MSSD_FRAC, PANEL_SIZE, choose_samples
+from pipeline.views.html import CORRECT_MSSD_FRAC, PANEL_SIZE, choose_samples
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SAMPLES = 4
@@ -52,7 +52,7 @@ def test_choose_samples_spreads_over_objects_and_mixes_correct_and_wrong():
 
 def _app() -> typer.Typer:
     """The real `freeze` app (the commands' wiring is part of what is tested)."""
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     return app
 
@@ -230,8 +230,8 @@ def test_report_command_names_the_missing_scores(tiny_report):
     assert "scores.json" in result.output and "not scored yet" in result.output
     assert not out.exists()
     # The run Snakemake passes in $FREEZE_RUN_JSON wins over the default manifest.
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     other = RunPlan(load_run({"datasets": "synthtiny", "visual": "colortex-coarse"}), cache=work / "cache")
     missing = other["synthtiny"]["score"].item_dir("all") / "scores.json"
@@ -256,9 +256,9 @@ def test_show_hypotheses_draws_each_hypothesis_of_a_candidate(tiny_report, tmp_p
     with Image.open(png) as im:  # one panel per hypothesis, side by side
         n = int((hyps.cand_id == cand).sum())
         assert im.width >= 240 * n and im.height >= 240
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
-    from pipeline.report.hypotheses_figure import hypothesis_cases
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
+    from pipeline.views.hypotheses_figure import hypothesis_cases
 
     plan = RunPlan(load_run({"datasets": "synthtiny"}), cache=work / "cache")["synthtiny"]
     (case,) = hypothesis_cases(plan, scene_id=1, cand_id=cand)
@@ -420,7 +420,7 @@ def _scores(kind: str) -> dict:
 
 
 def _estimates(kind: str) -> pd.DataFrame:
-    from pipeline.report.html import empty_estimate_table
+    from pipeline.views.html import empty_estimate_table
 
     if kind == "empty":
         return empty_estimate_table()
@@ -433,9 +433,9 @@ def _estimates(kind: str) -> pd.DataFrame:
 
 def _fake_run(tmp_path: Path, kind: str, monkeypatch) -> _RunPlan:
     """A run whose artifacts hold ``kind`` ("empty" or "nonfinite") values."""
-    from pipeline.plan import scene_item
-    from pipeline.report import html, hypotheses_figure, sar_figure
-    from pipeline.report.sar_figure import SarCase
+    from pipeline.workflow.plan import scene_item
+    from pipeline.views import html, hypotheses_figure, sar_figure
+    from pipeline.views.sar_figure import SarCase
 
     plan = _Plan(tmp_path / "cache" / "fake", scene_ids=[] if kind == "empty" else [1])
     if kind == "nonfinite":
@@ -471,7 +471,7 @@ def _fake_run(tmp_path: Path, kind: str, monkeypatch) -> _RunPlan:
 
 @pytest.mark.parametrize("kind", ["empty", "nonfinite"])
 def test_report_is_written_from_empty_nan_and_inf_artifacts(tmp_path, monkeypatch, kind):
-    from pipeline.report import html, plots
+    from pipeline.views import html, plots
 
     notes = []
     real = plots.no_data_figure
@@ -509,7 +509,7 @@ def test_report_is_written_from_empty_nan_and_inf_artifacts(tmp_path, monkeypatc
 
 
 def test_visibility_figure_takes_empty_nan_and_inf_bins(monkeypatch):
-    from pipeline.report import plots
+    from pipeline.views import plots
 
     notes = []
     real = plots.no_data_figure
@@ -532,7 +532,7 @@ def test_visibility_figure_takes_empty_nan_and_inf_bins(monkeypatch):
 
 
 def test_timing_figure_takes_empty_nan_and_inf_values(monkeypatch):
-    from pipeline.report import plots
+    from pipeline.views import plots
 
     _png_ok(plots.timing_figure([], [], []))
     _png_ok(plots.timing_figure(["a", "b"], [NAN, NAN], [NAN, NAN]))
@@ -545,7 +545,7 @@ def test_timing_figure_takes_empty_nan_and_inf_values(monkeypatch):
 def test_sar_figure_takes_empty_nan_and_inf_similarities(tmp_path):
     from PIL import Image
 
-    from pipeline.report.sar_figure import SarCase, draw_sar_figure
+    from pipeline.views.sar_figure import SarCase, draw_sar_figure
 
     img = np.full((24, 24, 3), 90, np.uint8)
     mask = np.zeros((24, 24), bool)
@@ -563,7 +563,7 @@ def test_sar_figure_takes_empty_nan_and_inf_similarities(tmp_path):
 def test_features_figure_takes_nan_inf_and_empty_clouds(tmp_path):
     from PIL import Image
 
-    from pipeline.report.features_figure import DPI, FIGSIZE, FeatureCase, draw_features_figure, pca_colours
+    from pipeline.views.features_figure import DPI, FIGSIZE, FeatureCase, draw_features_figure, pca_colours
 
     rng = np.random.default_rng(0)
     model = rng.normal(size=(60, 3)) * 30
@@ -605,7 +605,7 @@ def test_features_figure_takes_nan_inf_and_empty_clouds(tmp_path):
 
 
 def test_recall_table_shows_dashes_for_missing_values():
-    from pipeline.report.html import _recall_table
+    from pipeline.views.html import _recall_table
 
     page = _Page()
     page.feed(_recall_table({"vsd": [[NAN] * 10, [0.5] * 10, [INF] * 10], "mssd": [None] * 10, "mspd": [0.1, 0.2]}))
@@ -619,13 +619,13 @@ def test_recall_table_shows_dashes_for_missing_values():
 
 
 def _private_tmp(monkeypatch):
-    """Make pipeline.published_files' atomic_path hand out temporary files created 0600, as
+    """Make pipeline.common.published_files' atomic_path hand out temporary files created 0600, as
     a secure temp-file call does: the published file's mode must not depend on it."""
     import contextlib
     import os
 
-    from pipeline import published_files as files
-    from pipeline.store import atomic_path
+    from pipeline.common import published_files as files
+    from pipeline.common.store import atomic_path
 
     @contextlib.contextmanager
     def private(path):
@@ -641,7 +641,7 @@ def test_report_files_follow_the_umask(tmp_path, monkeypatch, umask_022, private
     import os
     import stat
 
-    from pipeline.report import html, plots
+    from pipeline.views import html, plots
 
     if private:
         _private_tmp(monkeypatch)
@@ -651,7 +651,7 @@ def test_report_files_follow_the_umask(tmp_path, monkeypatch, umask_022, private
     fig = plots._plt().figure()
     png = plots.save_figure(fig, tmp_path / "results" / "figures" / "f.png")
     assert stat.S_IMODE(png.stat().st_mode) == 0o644
-    from pipeline import published_files as files
+    from pipeline.common import published_files as files
 
     os.umask(0o027)  # another umask, read again: the mode follows it
     files.forget_umask()

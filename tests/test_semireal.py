@@ -1,5 +1,5 @@
 """Semi-real datasets built from the real samples in ../shared/realdata
-(pipeline/synth/semireal.py): the TYO-L frame with its real depth, and LM-O's real images
+(pipeline/evaluation/synth/semireal.py): the TYO-L frame with its real depth, and LM-O's real images
 with depth rendered from the ground truth."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.bop import BopDataset, load_detections
-from pipeline.synth.semireal import DEPTH_SCALE, build_semireal, prior_file
+from pipeline.formats.bop import BopDataset, load_detections
+from pipeline.evaluation.synth.semireal import DEPTH_SCALE, build_semireal, prior_file
 from shared_data import shared_dir
 
 TYOL_FILES = ["camera.json", "test_targets_bop19.json", "models/obj_000019.ply", "models/models_info.json",
@@ -32,7 +32,7 @@ def test_tyol_frame_keeps_its_real_depth_and_gets_the_exact_mask(tmp_path):
     x, y, w, h = det.bbox
     assert abs(x - 340) <= 3 and abs(y - 46) <= 3 and abs(w - 160) <= 4 and abs(h - 217) <= 4
     # and the real depth under it is the basket's: most masked points are near the model at the GT pose
-    from pipeline.geometry.depth import lift_depth
+    from pipeline.method.geometry.depth import lift_depth
     from scipy.spatial import cKDTree
 
     gt = ds.scene_gt(19)[10][0]
@@ -81,8 +81,8 @@ def test_semireal_lmo_renders_depth_from_the_ground_truth(tmp_path):
 
 
 def test_semireal_datasets_are_planned_from_the_sample_and_skipped_without_it(tmp_path, monkeypatch):
-    from pipeline import config as cfg
-    from pipeline.plan import RunPlan
+    from pipeline.common import config as cfg
+    from pipeline.workflow.plan import RunPlan
 
     shared_dir("realdata", "tyol-obj19-frame10", files=TYOL_FILES)
     rp = RunPlan(cfg.load_run({"datasets": "tyol"}))

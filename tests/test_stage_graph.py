@@ -1,10 +1,9 @@
-"""The stage graph is declared once (pipeline/stage_graph.py) and everything agrees with it:
-the keys, the Snakemake inputs, what each stage actually opens, what it publishes, and
-the layering (the library never imports the stages)."""
+"""The stage graph is declared once (pipeline/workflow/stage_graph.py) and everything agrees with it:
+the keys, the Snakemake inputs, what each stage actually opens, and
+what each stage publishes (the layering is tests/test_layers.py)."""
 
 from __future__ import annotations
 
-import ast
 import dataclasses
 import shutil
 import sys
@@ -12,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import config as cfg
-from pipeline import stage_graph
-from pipeline.plan import RunPlan, StageIO
-from pipeline.stage_graph import STAGES, UndeclaredRead, check_graph
+from pipeline.common import config as cfg
+from pipeline.workflow import stage_graph
+from pipeline.workflow.plan import RunPlan, StageIO
+from pipeline.workflow.stage_graph import STAGES, UndeclaredRead, check_graph
 
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -92,52 +91,6 @@ def test_stage_io_refuses_undeclared_reads_and_writes(tmp_path):
     assert not io.out.item_dir("obj_000002").exists()  # nothing published
 
 
-def _library_imports_of_stages() -> list[str]:
-    """Modules under pipeline/ (the command-line modules that run stages aside) that import ``stages``."""
-    allowed = {"pipeline/cli.py", "pipeline/estimate_cli.py"}
-    found = []
-    for path in sorted((ROOT / "pipeline").rglob("*.py")):
-        rel = path.relative_to(ROOT).as_posix()
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
-            if any(n == "stages" or n.startswith("stages.") for n in names) and rel not in allowed:
-                found.append(rel)
-    return found
-
-
-def test_the_library_never_imports_stages():
-    assert _library_imports_of_stages() == []
-
-
-METHOD = ("bop", "geometry", "render", "encoders", "registration", "refinement", "metrics", "synth", "estimate",
-          "segmentation", "model_side", "scene_side", "store", "config", "progress", "stage_graph", "published_files",
-          "file_hashes")
-"""The method's modules (docs/architecture.md, "Layers"): pure functions over arrays,
-records and files, which never look at the plan, the stages or the commands."""
-ABOVE = ("pipeline.plan", "pipeline.artifacts", "pipeline.report.cli", "pipeline.report.html",
-         "pipeline.report.features_figure", "pipeline.report.sar_figure", "pipeline.cli", "pipeline.inspect_cli",
-         "pipeline.estimate_cli", "pipeline.datasets_check", "pipeline.run_cli", "pipeline.cache_verify", "stages")
-
-
-def test_the_method_does_not_import_the_layers_above_it():
-    bad = []
-    for name in METHOD:
-        paths = sorted((ROOT / "pipeline" / name).rglob("*.py")) if (ROOT / "pipeline" / name).is_dir() else [
-            ROOT / "pipeline" / f"{name}.py"]
-        for path in paths:
-            for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.ImportFrom) and not node.level:
-                    names = [node.module or ""]
-                elif isinstance(node, ast.Import):
-                    names = [a.name for a in node.names]
-                else:
-                    continue
-                bad += [(path.relative_to(ROOT).as_posix(), n) for n in names
-                        if any(n == a or n.startswith(a + ".") for a in ABOVE)]
-    assert bad == []
-
-
 def test_stage_modules_name_their_algorithm_one_hop_away():
     """Each stage module's docstring names the library function holding its algorithm,
     the one its declaration names, and that function exists."""
@@ -184,7 +137,7 @@ def _owner(path: Path, plan, cache: Path) -> str | None:
 def test_every_stage_opens_only_what_it_declares(tiny_run, tmp_path, monkeypatch):
     """Re-run one job of every stage on a copy of the main synthtiny run, recording every
     file each opens; each must be in its own output or in a declared read."""
-    import pipeline.store as store
+    import pipeline.common.store as store
     from stages import run_stage
 
     work, _ = tiny_run
@@ -201,9 +154,9 @@ def test_every_stage_opens_only_what_it_declares(tiny_run, tmp_path, monkeypatch
         return read_table(path)
 
     import stages.refine, stages.register, stages.scene_features  # noqa: E401, F401  (bind their read_table first)
-    import pipeline.plan
+    import pipeline.workflow.plan
 
-    ensure_sound = pipeline.plan.ensure_sound
+    ensure_sound = pipeline.workflow.plan.ensure_sound
 
     def unrecorded_check(folder):
         # Checking an input's checksums hashes every file of its artifact (the synthetic
@@ -214,7 +167,7 @@ def test_every_stage_opens_only_what_it_declares(tiny_run, tmp_path, monkeypatch
         finally:
             opened.active = active
 
-    monkeypatch.setattr(pipeline.plan, "ensure_sound", unrecorded_check)
+    monkeypatch.setattr(pipeline.workflow.plan, "ensure_sound", unrecorded_check)
 
     for module in list(sys.modules.values()):
         if getattr(module, "read_table", None) is read_table:

@@ -18,9 +18,9 @@ import stages.render_templates
 import stages.scene_features
 import stages.segment_prior
 import stages.synth
-from pipeline import config as cfg
-from pipeline.plan import RunPlan, obj_item, scene_item
-from pipeline.store import load_arrays, read_table
+from pipeline.common import config as cfg
+from pipeline.workflow.plan import RunPlan, obj_item, scene_item
+from pipeline.common.store import load_arrays, read_table
 
 
 

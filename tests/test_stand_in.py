@@ -1,4 +1,4 @@
-"""The one line that says which encoders stand in for the paper's (pipeline/stand_in.py),
+"""The one line that says which encoders stand in for the paper's (pipeline/common/stand_in.py),
 where a run prints it (Snakefile onstart, `freeze run`), the report, and `freeze encoders`."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from pipeline.stand_in import encoders_sentence, paper_configuration, paper_line, stand_in_notice
+from pipeline.common.stand_in import encoders_sentence, paper_configuration, paper_line, stand_in_notice
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_NOTICE = ("note: fpfh + colortex are weight-free stand-ins for the paper's GeDi + DINOv2 ViT-g/14; fetch those "
@@ -78,7 +78,7 @@ def test_names_come_from_the_manifests_flags(tmp_path):
 
 
 def test_encoders_command_marks_the_paper_s_and_the_stand_ins(monkeypatch, tmp_path):
-    from pipeline.cli import app
+    from pipeline.commands.cli import app
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
     result = CliRunner().invoke(app, ["encoders", "--json"])
@@ -101,7 +101,7 @@ def test_encoders_command_marks_the_paper_s_and_the_stand_ins(monkeypatch, tmp_p
 def test_report_says_it_once_under_the_run_s_encoders(tmp_path, monkeypatch):
     from test_report import _fake_run  # a run plan with empty artifacts
 
-    from pipeline.report import html
+    from pipeline.views import html
 
     rp = _fake_run(tmp_path, "empty", monkeypatch)
     rp.encoders = {k: {"manifest": m, "signature": m, "version": 1} for k, m in (("geometric", "fpfh"),
@@ -120,8 +120,8 @@ def test_report_says_it_once_under_the_run_s_encoders(tmp_path, monkeypatch):
 
 def _synth_target(cache: Path) -> str:
     """The manifest of synthtiny's synth job (a few seconds) under ``cache``."""
-    from pipeline.config import load_run
-    from pipeline.plan import RunPlan
+    from pipeline.common.config import load_run
+    from pipeline.workflow.plan import RunPlan
 
     return str(RunPlan(load_run({"datasets": "synthtiny"}), cache=cache)["synthtiny"]["synth"].manifest("dataset"))
 
@@ -169,7 +169,7 @@ def test_freeze_run_says_it_once_with_its_own_options(tmp_path):
 
 
 def test_weights_fetch_without_names_gives_the_paper_s_fetch():
-    from pipeline.weights.catalog import UnknownWeights, select
+    from pipeline.formats.weights.catalog import UnknownWeights, select
 
     with pytest.raises(UnknownWeights, match=r"the paper's configuration: `freeze weights fetch gedi dinov2-vitg14`$"):
         select([])

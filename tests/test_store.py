@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.store import (
+from pipeline.common.store import (
     load_arrays, load_attrs, publish, read_manifest, read_table, save_arrays, table_metadata, write_table,
 )
 
@@ -75,7 +75,7 @@ def test_parquet_keeps_key_in_schema_metadata(tmp_path):
 
 
 def test_atomic_file_and_folder_writes_leave_the_old_version_on_failure(tmp_path):
-    from pipeline.store import atomic_dir, atomic_path, atomic_write_text
+    from pipeline.common.store import atomic_dir, atomic_path, atomic_write_text
 
     path = tmp_path / "sub" / "table.csv"
     atomic_write_text(path, "one\n")
@@ -104,7 +104,7 @@ def test_atomic_file_and_folder_writes_leave_the_old_version_on_failure(tmp_path
 
 
 def test_there_is_one_atomic_write_in_the_project():
-    """Every atomic write goes through pipeline.store (atomic_path / atomic_dir / swap_entries)."""
+    """Every atomic write goes through pipeline.common.store (atomic_path / atomic_dir / swap_entries)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
@@ -120,7 +120,7 @@ def test_swap_entries_puts_everything_back_when_a_move_fails(tmp_path, monkeypat
     import errno
     import os
 
-    from pipeline.store import swap_entries
+    from pipeline.common.store import swap_entries
 
     out, staging = tmp_path / "out", tmp_path / "out" / ".staging"
     (out / "a").mkdir(parents=True)

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.bop import BopDataset, load_detections, load_json, read_ply, rle_decode
-from pipeline.synth import PRESETS, build_object, generate, preset_layout
-from pipeline.synth.annotate import bbox_from_mask
-from pipeline.synth.verify import SurfaceProbe, axis_rotation
+from pipeline.formats.bop import BopDataset, load_detections, load_json, read_ply, rle_decode
+from pipeline.evaluation.synth import PRESETS, build_object, generate, preset_layout
+from pipeline.evaluation.synth.annotate import bbox_from_mask
+from pipeline.evaluation.synth.verify import SurfaceProbe, axis_rotation
 
 PRESET = PRESETS["tiny"]
 
@@ -89,7 +89,7 @@ def test_visibility_statistics_match_masks(ds):
 
 
 def test_gt_pose_rerenders_mask(ds):
-    from pipeline.render import Renderer
+    from pipeline.method.render import Renderer
 
     with Renderer(640, 480) as r:
         for o in ds.obj_ids():
@@ -103,7 +103,7 @@ def test_gt_pose_rerenders_mask(ds):
 
 
 def test_depth_agrees_with_gt_within_noise(ds):
-    from pipeline.render import Renderer
+    from pipeline.method.render import Renderer
 
     sigma_k = PRESET.sensor.noise_k
     with Renderer(640, 480) as r:
@@ -195,7 +195,7 @@ def test_detections_decode_and_match_masks(tiny, ds):
 
 
 def test_refuses_to_overwrite_and_cleans_up_on_failure(tmp_path, monkeypatch):
-    import pipeline.synth.writer as gen
+    import pipeline.evaluation.synth.writer as gen
 
     out = tmp_path / "ds"
     out.mkdir()
@@ -218,9 +218,9 @@ def test_refuses_to_overwrite_and_cleans_up_on_failure(tmp_path, monkeypatch):
 def test_models_are_centred_on_their_bounding_box(ds):
     """render_templates looks at each model's bounding-box centre; for the synthetic
     objects that is exactly the origin (in the written PLY's float32 too), which is why
-    their template keys did not change when that rule came (pipeline/plan.py, _look_at)."""
-    from pipeline.render.templates import bbox_centre
-    from pipeline.synth.objects import OBJ_IDS
+    their template keys did not change when that rule came (pipeline/workflow/plan.py, _look_at)."""
+    from pipeline.method.render.templates import bbox_centre
+    from pipeline.evaluation.synth.objects import OBJ_IDS
 
     for obj_id in OBJ_IDS:
         v = np.asarray(build_object(obj_id).model.vertices).astype(np.float32)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.synth import OBJ_IDS, PRESETS, build_object, compose_scenes
-from pipeline.synth.annotate import bbox_from_mask, projected_bbox, silhouette_bbox
-from pipeline.synth.meshkit import (
+from pipeline.evaluation.synth import OBJ_IDS, PRESETS, build_object, compose_scenes
+from pipeline.evaluation.synth.annotate import bbox_from_mask, projected_bbox, silhouette_bbox
+from pipeline.evaluation.synth.meshkit import (
     box_patches,
     circle,
     concatenate,
@@ -17,11 +17,11 @@ from pipeline.synth.meshkit import (
     signed_area,
     triangulate_region,
 )
-from pipeline.synth.objects import physics_mesh, rot
-from pipeline.synth.priors import PriorFaults, VisibleInstance, image_detections
-from pipeline.synth.scene import _footprint, _separated, kelvin_to_rgb, layout_objects, look_at, project, resting_poses
-from pipeline.synth.sensor import DepthSensor, simulate_depth
-from pipeline.synth.verify import SurfaceProbe, axis_rotation, symmetry_residual
+from pipeline.evaluation.synth.objects import physics_mesh, rot
+from pipeline.evaluation.synth.priors import PriorFaults, VisibleInstance, image_detections
+from pipeline.evaluation.synth.scene import _footprint, _separated, kelvin_to_rgb, layout_objects, look_at, project, resting_poses
+from pipeline.evaluation.synth.sensor import DepthSensor, simulate_depth
+from pipeline.evaluation.synth.verify import SurfaceProbe, axis_rotation, symmetry_residual
 
 K = PRESETS["mini"].K
 

@@ -25,14 +25,14 @@ transformers = pytest.importorskip("transformers")
 
 from test_encoders_dinov2 import TINY, _tiny_hf, _to_official  # noqa: E402  (the tiny DINOv2 of its tests)
 
-from pipeline import config as cfg  # noqa: E402
-from pipeline.cli import app  # noqa: E402
-from pipeline.encoders import dinov2 as d2  # noqa: E402
-from pipeline.encoders.gedi import STATE_KEY, GeDiNet  # noqa: E402
-from pipeline.encoders.registry import build_encoder  # noqa: E402
-from pipeline.weights import (WeightsFetchError, fetch_download, part_path, read_sidecar, select,  # noqa: E402
+from pipeline.common import config as cfg  # noqa: E402
+from pipeline.commands.cli import app  # noqa: E402
+from pipeline.method.encoders import dinov2 as d2  # noqa: E402
+from pipeline.method.encoders.gedi import STATE_KEY, GeDiNet  # noqa: E402
+from pipeline.method.encoders.registry import build_encoder  # noqa: E402
+from pipeline.formats.weights import (WeightsFetchError, fetch_download, part_path, read_sidecar, select,  # noqa: E402
                               sidecar_path)
-from pipeline.weights.fetch import part_meta_path  # noqa: E402
+from pipeline.formats.weights.fetch import part_meta_path  # noqa: E402
 
 runner = CliRunner()
 GEDI_MEMBER = "chkpts/3dmatch/chkpt.tar"

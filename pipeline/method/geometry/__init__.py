@@ -1,0 +1,1 @@
+"""Geometry of points, depth images, crops, transforms and symmetries (mm, OpenCV camera)."""

@@ -1,0 +1,1 @@
+"""Coarse registration: fused features (:mod:`.fusion`) and RANSAC on their matches (:mod:`.ransac`)."""
