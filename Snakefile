@@ -14,7 +14,8 @@ from pipeline.commands.common import USER_ERRORS
 from pipeline.common.config import ManifestError, load_run
 from pipeline.workflow.plan import RunPlan
 from pipeline.commands.run import planned_manifests
-from pipeline.workflow.stage_graph import STAGES
+from pipeline.workflow.stage_graph import STAGES, stage_rules
+from pipeline.workflow.stage_docs import job_per
 from pipeline.common.threads import ENV_VARS
 
 try:
@@ -91,6 +92,33 @@ def stage_inputs(stage, kind):
     return inputs
 
 
+SIGNATURE_UNCHECKED = {"synth", "render_templates", "symmetries", "segment_prior"}
+"""The stages whose rules have no ``check`` param (see ``rule_params``)."""
+
+
+def rule_params(stage, kind):
+    """The params of the rule running ``stage`` for items of ``kind``: the item, and for
+    most stages ``check``, which refuses at DAG time a signature the plan does not have
+    (every job checks it again, ``--expect-sig``). The stages of SIGNATURE_UNCHECKED
+    have never had it, and must not get it: a new rule param reruns every job that has
+    already run (Snakemake's params trigger), and a rerun synth rebuilds everything after it."""
+    item = {"obj": lambda wc: f"obj_{wc.obj}", "scene": lambda wc: f"scene_{wc.scene}"}.get(kind, kind)
+    if stage in SIGNATURE_UNCHECKED:
+        return {"item": item}
+    return {"item": item, "check": lambda wc: stage_plan(wc, stage).signature}
+
+
+def stage_paths(stage, kind):
+    """(output manifest, log) patterns of the rule running ``stage`` for items of ``kind``:
+    ``<cache>/<ds>/<stage>/<sig>/<item>/_manifest.json`` and
+    ``<logs>/<ds>/<stage>/<sig>/<item>.log``, or ``<logs>/<ds>/<stage>/<sig>.log`` for a
+    stage with one dataset-wide item."""
+    item = {"obj": "obj_{obj}", "scene": "scene_{scene}"}.get(kind, kind)
+    single = len(STAGES[stage].items) == 1 and kind in ("all", "dataset")
+    return (f"{CACHE}/{{ds}}/{stage}/{{sig}}/{item}/_manifest.json",
+            f"{LOGS}/{{ds}}/{stage}/{{sig}}.log" if single else f"{LOGS}/{{ds}}/{stage}/{{sig}}/{item}.log")
+
+
 wildcard_constraints:
     ds="[a-z0-9]+",
     sig="[A-Za-z0-9.+-]+",
@@ -98,15 +126,37 @@ wildcard_constraints:
     scene="[0-9]{6}(-[0-9]+)?",
 
 
-include: "stages/synth.smk"
-include: "stages/render_templates.smk"
-include: "stages/symmetries.smk"
-include: "stages/model_features.smk"
-include: "stages/segment_prior.smk"
-include: "stages/scene_features.smk"
-include: "stages/register.smk"
-include: "stages/refine.smk"
-include: "stages/score.smk"
+def stage_rule(r):
+    """Define the rule ``r`` (a :class:`pipeline.workflow.stage_graph.StageRule`). A
+    function, not the body of a loop: Snakemake evaluates a rule's ``shell:`` expression
+    again when the job runs, where a loop variable would hold the last rule's value."""
+    output, log = stage_paths(r.stage, r.kind)
+
+    rule:
+        name: r.name
+        input:
+            stage_inputs(r.stage, r.kind),
+        output:
+            output,
+        params:
+            **rule_params(r.stage, r.kind),
+        threads: STAGES[r.stage].threads
+        resources:
+            mem_mb=STAGES[r.stage].mem_mb,
+            runtime=STAGES[r.stage].runtime_min,
+        log:
+            log,
+        shell:
+            stage_shell(r.stage)
+
+    workflow.get_rule(r.name).docstring = (
+        f"Stage {r.stage}, one job per {job_per(r.stage, r.kind)}: {STAGES[r.stage].summary}.")
+
+
+# The stage rules: one per stage and item kind (stage_graph.stage_rules: the stage's
+# name, `refine_collect` for refine's dataset-wide item), from the declarations.
+for _r in stage_rules():
+    stage_rule(_r)
 
 
 # The AR table and the reports take seconds: on a cluster they run where Snakemake runs,

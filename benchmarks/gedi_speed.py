@@ -345,7 +345,7 @@ def main() -> None:
         if args.profile_points > 0:
             torch.set_num_threads(default_threads)
             lines += ["## Where the time goes", "",
-                      f"cProfile, cumulative seconds, `scene` cloud, one run each; indented rows are part of "
+                      "cProfile, cumulative seconds, `scene` cloud, one run each; indented rows are part of "
                       "the network forward. The new path is profiled on one thread: with more, its "
                       "network calls run on worker threads, which cProfile does not see.", "",
                       profile_paths(enc, cloud_sets["scene"], diameter, args.profile_points)]

@@ -32,15 +32,10 @@ produce all estimates of the image, excluding model onboarding; algorithm:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import partial
-from typing import Any
-
 import pandas as pd
 
-from pipeline.common.parallel import PerThread
-from pipeline.workflow.plan import DatasetPlan, obj_item
 from pipeline.common.store import load_arrays, read_table, write_table
+from pipeline.workflow.plan import DatasetPlan
 
 THREADS_HELP = False
 """Whether the candidates run on the job's threads when no dask scheduler is named: not by
@@ -53,21 +48,17 @@ scheduler named by the run still gets the candidates (:func:`pipeline.common.par
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     if item == "all":
         return _collect(plan)
-    from pipeline.formats.bop.detections import rle_decode
-    from pipeline.method.geometry.symmetry import SymmetrySet
-    from pipeline.method.model_side import read_near_symmetries, read_symmetries
-    from pipeline.workflow.plan import build_encoders, encoder_runtime
-    from pipeline.common.progress import progress_bar
-    from pipeline.method.refinement.turns import model_turns
     from pipeline.common.parallel import job_mapper
-    from pipeline.method.scene_side import (POSE_COLUMNS, SAR_COLUMNS, SceneImages, choose_estimates, refine_by_symmetry,
-                                     refine_candidates, sar_transforms, time_table)
+    from pipeline.common.progress import progress_bar
+    from pipeline.formats.bop.detections import prior_row_mask
+    from pipeline.method.estimator import Estimator
+    from pipeline.method.scene_side import SceneImages, time_table
+    from pipeline.workflow.plan import build_encoders, encoder_runtime
+    from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("refine", item)
-    scene_id, p = io.item_id(), io.params
+    scene_id = io.item_id()
     bop = io.bop()
-    infos = bop.models_info()
-    diameters = {o: i.diameter for o, i in infos.items()}
     im_ids = io.images()  # the scene's, or this chunk's (images_per_job)
     targets = [t for t in bop.targets(plan.root / plan.dataset.targets_file)
                if t.scene_id == scene_id and t.im_id in im_ids]
@@ -75,69 +66,36 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     registered = registered[registered.status == "ok"]
     scene = load_arrays(io.input_dir("scene_features") / "features.zarr", ["points", "n_points", "cand_id"])
     pos = {int(c): i for i, c in enumerate(scene["cand_id"])}
-    models: dict[int, dict] = {}
-
-    def model_of(obj_id: int) -> dict:
-        if obj_id not in models:
-            models[obj_id] = load_arrays(io.input_dir("model_features", obj_item(obj_id)) / "features.zarr",
-                                         ["points", "normals"])
-        return models[obj_id]
-
-    def scene_points(cand_id: int):
-        i = pos[cand_id]
-        return scene["points"][i, :int(scene["n_points"][i])]
-
     boxes = read_table(io.input_dir("segment_prior") / "candidates.parquet")
     boxes = boxes[boxes.scene_id == scene_id].set_index("cand_id")
     cams = bop.scene_camera(scene_id)
 
     def candidate(cand_id: int):
         b = boxes.loc[cand_id]
-        mask = rle_decode({"counts": list(b.rle_counts), "size": [int(b.height), int(b.width)]})
-        return (b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h), mask
+        return (b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h), prior_row_mask(b)
 
-    loaders = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
-                          depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
-                          mesh=bop.load_model, candidate=candidate)
-    images = loaders.keeping_last()
-    objects = sorted(set(registered.obj_id.astype(int)))
-    for o in objects:  # loaded here once, before the candidates are spread over threads or workers
-        model_of(o)
-    symmetries = {o: io.input_dir("symmetries", obj_item(o)) / "symmetries.json" for o in objects}
-    found = {o: read_symmetries(path) for o, path in symmetries.items()}
-    turns = {o: model_turns(read_near_symmetries(symmetries[o]), model_of(o)["points"], found[o], diameters[o])
-             for o in objects} if p.turns else {}
-    fine_objects = {o for o in objects if found[o].is_trivial} if p.icp and p.fine_icp_points else None
+    images = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
+                         depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
+                         mesh=bop.load_model, candidate=candidate)
+    estimator = Estimator(prepared_objects(io, bop, features=("points", "normals"), symmetries=True, mesh=True),
+                          plan.run.stages, lambda: build_encoders(plan.run), image_mode=plan.dataset.image_mode)
     with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
             job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
-        # A verifier and a fine ICP per thread: a renderer belongs to the thread that made
-        # it, and the loaders that keep the last image are not shared between threads.
-        tools = mapper.per_thread(partial(_ThreadTools, loaders, p, fine_objects))
-        hypotheses, refined, image_time = refine_candidates(
-            registered, scene_points, models.__getitem__, diameters, p, _ThreadVerify(tools),
-            _ThreadFine(tools) if fine_objects is not None else None, bar.advance, turns, mapper)
-    table, poses = choose_estimates(refined, targets, diameters, p)
-    sar_rows: list[dict] = []
-    vis = None
-    if len(poses):
-        transforms = {o: sar_transforms(read_symmetries(io.input_dir("symmetries", obj_item(o)) / "symmetries.json"),
-                                        SymmetrySet.from_model_info(infos[o]), infos[o].diameter, p)
-                      for o in sorted(set(poses.obj_id.astype(int)))}
-        vis = build_encoders(plan.run)[1] if p.sar else None
-        with progress_bar(f"SAR {item}", total=len(poses), enabled=progress) as bar:
-            sar_rows = refine_by_symmetry(poses, transforms, images, vis, p, plan.run.stages.scene_features.crop_margin,
-                                          plan.dataset.image_mode, image_time,
-                                          lambda n: bar.set_total(n) or bar.advance)
+        refined = estimator.refine(registered, lambda c: scene["points"][pos[c], :int(scene["n_points"][pos[c]])],
+                                   images, targets, bar.advance, mapper)
+    with progress_bar(f"SAR {item}", total=len(refined.poses), enabled=progress) as bar:
+        refined = estimator.refine_by_symmetry(refined, images, lambda n: bar.set_total(n) or bar.advance)
+    table, poses = refined.candidates, refined.poses
     with io.publish() as w:
-        if vis is not None:  # SAR's encoder passes: where and in what precision (recorded, not keyed)
-            w.manifest["runtime"] = {"visual": encoder_runtime(vis)}
+        if refined.sar_encoder is not None:  # SAR's encoder passes: where and in what precision (recorded, not keyed)
+            w.manifest["runtime"] = {"visual": encoder_runtime(refined.sar_encoder)}
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
-        write_table(hypotheses, w.dir / "hypotheses.parquet", metadata={"key": io.out.key})
-        write_table(poses[POSE_COLUMNS].reset_index(drop=True), w.dir / "poses.parquet", metadata={"key": io.out.key})
-        write_table(pd.DataFrame(sar_rows, columns=SAR_COLUMNS), w.dir / "sar.parquet", metadata={"key": io.out.key})
-        write_table(time_table(scene_id, image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
+        write_table(refined.hypotheses, w.dir / "hypotheses.parquet", metadata={"key": io.out.key})
+        write_table(poses, w.dir / "poses.parquet", metadata={"key": io.out.key})
+        write_table(refined.sar, w.dir / "sar.parquet", metadata={"key": io.out.key})
+        write_table(time_table(scene_id, refined.image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
         w.summary.update({
-            "scene_id": scene_id, "n_candidates": int(len(table)), "n_hypotheses": int(len(hypotheses)),
+            "scene_id": scene_id, "n_candidates": int(len(table)), "n_hypotheses": int(len(refined.hypotheses)),
             "n_poses": int(len(poses)),
             "mean_fitness": float(poses.fitness.mean()) if len(poses) else None,
             "n_duplicates": int(table.note.str.startswith("duplicate").sum()),
@@ -146,52 +104,18 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         })
 
 
-class _ThreadTools:
-    """One thread's verifier and fine ICP, sharing that thread's loaders (which keep the
-    last image and mask). ``fine_objects``: the objects the fine ICP refines (None: off)."""
-
-    def __init__(self, loaders: Any, params: Any, fine_objects: set[int] | None):
-        from pipeline.method.scene_side import FineIcp, PoseVerifier
-
-        images = loaders.keeping_last()
-        self.verify = PoseVerifier(images, params)
-        self.fine = FineIcp(images, params, fine_objects) if fine_objects is not None else None
-
-    def close(self) -> None:
-        self.verify.__exit__(None, None, None)
-
-
-@dataclass(frozen=True)
-class _ThreadVerify:
-    """The calling thread's verifier (picklable: a cluster's worker makes its own)."""
-
-    tools: PerThread
-
-    def __call__(self, *args: Any) -> Any:
-        return self.tools.get().verify(*args)
-
-
-@dataclass(frozen=True)
-class _ThreadFine:
-    """The calling thread's fine ICP (picklable: a cluster's worker makes its own)."""
-
-    tools: PerThread
-
-    def __call__(self, *args: Any) -> Any:
-        return self.tools.get().fine(*args)
-
-
 def _collect(plan: DatasetPlan) -> None:
     """Gather every scene's refined poses into the BOP results CSV."""
     from pipeline.formats.bop.results import estimates_rows, image_times, write_results_csv
     from pipeline.method.scene_side import POSE_COLUMNS
+    from pipeline.workflow.stage_graph import stages_writing
 
     io = plan.io("refine", "all")
     poses, times = [], []
     for item in plan.scene_items:
         poses.append(read_table(io.input_dir("refine", item) / "poses.parquet"))
         times.extend(read_table(io.input_dir(stage, item) / "images.parquet")
-                     for stage in ("scene_features", "register", "refine"))
+                     for stage in stages_writing("images.parquet", "scene"))
     poses = pd.concat(poses, ignore_index=True) if poses else pd.DataFrame(columns=POSE_COLUMNS)
     prior = read_table(io.input_dir("segment_prior") / "candidates.parquet")
     per_image = image_times(times, prior.groupby(["scene_id", "im_id"]).prior_time.first())

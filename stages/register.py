@@ -12,7 +12,8 @@ n_correspondences, time_s (the candidate's, on its first row).
 ``pca.zarr``: the per-object PCA bases used (obj_id (K,), mean (K, C), components
 (K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual
 features carried no variance and the visual part was dropped); empty in geometry-only
-runs. Algorithm: :func:`pipeline.method.scene_side.register_candidates`.
+runs. Algorithm: :meth:`pipeline.method.estimator.Estimator.register`
+(:func:`pipeline.method.scene_side.register_candidates`).
 
 The candidates go to the dask cluster the run names (``dask_scheduler``, else
 ``$DASK_SCHEDULER_ADDRESS``), else run in this process (:mod:`pipeline.common.parallel`).
@@ -20,8 +21,8 @@ The candidates go to the dask cluster the run names (``dask_scheduler``, else
 
 from __future__ import annotations
 
-from pipeline.workflow.plan import DatasetPlan, obj_item
 from pipeline.common.store import load_arrays, read_table, save_arrays, write_table
+from pipeline.workflow.plan import DatasetPlan
 
 THREADS_HELP = True
 """The candidates run on the job's threads (dask's threaded scheduler) when no dask scheduler is
@@ -33,29 +34,24 @@ without ``--threads`` and ``freeze estimate`` use every core."""
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.common.parallel import job_mapper
     from pipeline.common.progress import progress_bar
-    from pipeline.method.scene_side import matchable_model, pca_arrays, register_candidates, time_table
+    from pipeline.method.estimator import Estimator
+    from pipeline.method.scene_side import time_table
+    from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("register", item)
     scene_id, p = io.item_id(), io.params
-    infos = io.bop().models_info()
     scene = load_arrays(io.input_dir("scene_features") / "features.zarr")
     cands = read_table(io.input_dir("scene_features") / "candidates.parquet")
-    models = {}
-
-    def model_of(obj_id: int):
-        if obj_id not in models:
-            features = load_arrays(io.input_dir("model_features", obj_item(obj_id)) / "features.zarr")
-            models[obj_id] = matchable_model(features, p.pca_dim)
-        return models[obj_id]
-
+    # no encoder: registration matches the features both sides already hold
+    estimator = Estimator(prepared_objects(io, io.bop(), features=()), plan.run.stages)
     with progress_bar(f"register {item}", total=len(cands), enabled=progress) as bar, \
             job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
-        table, image_time = register_candidates(cands, scene, model_of, {o: i.diameter for o, i in infos.items()}, p,
-                                                lambda cand_id: io.candidate_seed(int(cand_id), p.seed), bar.advance,
-                                                mapper)
+        registered = estimator.register(cands, scene, lambda cand_id: io.candidate_seed(int(cand_id), p.seed),
+                                        bar.advance, mapper)
+    table = registered.table
     with io.publish() as w:
         write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
-        write_table(time_table(scene_id, image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
-        save_arrays(w.dir / "pca.zarr", pca_arrays(models), attrs={"key": io.out.key, "pca_dim": p.pca_dim})
+        write_table(time_table(scene_id, registered.image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
+        save_arrays(w.dir / "pca.zarr", registered.pca, attrs={"key": io.out.key, "pca_dim": p.pca_dim})
         w.summary.update({"scene_id": scene_id, "n_candidates": int(len(table)),
                           "n_registered": int((table.status == "ok").sum())})

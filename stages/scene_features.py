@@ -6,7 +6,8 @@ points (C, M, 3) float32 mm camera frame, pixels (C, M, 2) int32 (u, v), geometr
 (C, M, G) and visual (C, M, V) float32 (NaN beyond n_points), n_points (C,) int32,
 cand_id (C,) int64. ``candidates.parquet``: every candidate of the scene with status
 ``ok`` or ``skipped`` and the reason. ``images.parquet``: processing time per image (s).
-Algorithm: :func:`pipeline.method.scene_side.scene_features`.
+Algorithm: :meth:`pipeline.method.estimator.Estimator.scene_features`
+(:func:`pipeline.method.scene_side.scene_features`).
 """
 
 from __future__ import annotations
@@ -21,9 +22,10 @@ from pipeline.common.store import read_table, save_arrays, write_table
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
-    from pipeline.formats.bop.detections import rle_decode
     from pipeline.common.progress import progress_bar
-    from pipeline.method.scene_side import CandidateMask, pack_candidates, scene_features
+    from pipeline.formats.bop.detections import prior_row_mask
+    from pipeline.method.estimator import Estimator, Observation, PreparedObject
+    from pipeline.method.scene_side import CandidateMask, pack_candidates
 
     io = plan.io("scene_features", item)
     scene_id, p = io.item_id(), io.params
@@ -32,7 +34,9 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     cams = bop.scene_camera(scene_id)
     cands = read_table(io.input_dir("segment_prior") / "candidates.parquet")
     cands = cands[(cands.scene_id == scene_id) & cands.im_id.isin(io.images())].sort_values("cand_id")
-    geo_enc, vis_enc = build_encoders(plan.run)
+    estimator = Estimator({o: PreparedObject(o, i.diameter) for o, i in infos.items()}, plan.run.stages,
+                          build_encoders(plan.run))
+    geo_enc, vis_enc = estimator.encoders
     found = {}
     image_rows = []
     with progress_bar(f"scene_features {item}", total=len(cands), enabled=progress) as bar:
@@ -41,15 +45,15 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
             depth = bop.load_depth(scene_id, int(im_id))
             masks = []
             for r in rows.itertuples(index=False):
-                mask = rle_decode({"counts": list(r.rle_counts), "size": [int(r.height), int(r.width)]})
+                mask = prior_row_mask(r)
                 if mask.shape != depth.shape:
                     src = getattr(r, "prior_source", "") or ", ".join(str(x) for x in plan.prior_paths)
                     raise ValueError(f"{src}: detection {r.det_index} (scene {scene_id}, image {im_id}): "
                                      f"mask size {mask.shape} differs from the depth image {depth.shape}")
                 masks.append(CandidateMask(int(r.cand_id), int(r.obj_id), mask, (r.bbox_x, r.bbox_y, r.bbox_w, r.bbox_h),
                                            infos[int(r.obj_id)].diameter, io.candidate_seed(int(r.cand_id), p.seed)))
-            for f in scene_features(bop.load_rgb(scene_id, int(im_id)), depth, cams[int(im_id)].K, masks, geo_enc,
-                                    vis_enc, p, progress=bar.advance):
+            obs = Observation(bop.load_rgb(scene_id, int(im_id)), depth, cams[int(im_id)].K)
+            for f in estimator.scene_features(obs, masks, progress=bar.advance):
                 found[f.cand_id] = f
             image_rows.append({"scene_id": scene_id, "im_id": int(im_id), "n_candidates": len(rows),
                                "time_s": time.perf_counter() - t0})

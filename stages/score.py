@@ -51,8 +51,7 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
             (w.dir / "scores.json").write_text(json.dumps({"summary": summary}, indent=1) + "\n")
             w.summary.update(summary)
             return
-        run = getattr(plan, "run", None)  # (tests drive the stage with a stand-in plan that has none)
-        with job_mapper(run.dask_scheduler if run is not None else None, THREADS_HELP) as mapper:
+        with job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
             scores = score_results_file(csv, plan.root, split=plan.dataset.split, split_type=plan.dataset.split_type,
                                         targets_file=plan.root / plan.dataset.targets_file,
                                         out_dir=w.dir, n_workers=io.params.n_workers,

@@ -23,7 +23,7 @@ import trimesh  # noqa: E402
 from pipeline.method.geometry.depth import lift_depth  # noqa: E402
 from pipeline.method.geometry.normals import estimate_normals  # noqa: E402
 from pipeline.method.geometry.sampling import sample_points  # noqa: E402
-from pipeline.method.geometry.transforms import random_rotation  # noqa: E402
+from pose_helpers import random_rotation  # noqa: E402
 
 SCENE_K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 SCENE_WH = (640, 480)

@@ -10,6 +10,7 @@ import trimesh
 
 from pipeline.method.encoders.colortex import ColorTexEncoder
 from pipeline.method.encoders.fpfh import FpfhEncoder
+from pipeline.formats.weights.formats import WeightsNotFound
 from pipeline.method.encoders.registry import (
     EncoderSpec,
     GeometricEncoder,
@@ -19,7 +20,7 @@ from pipeline.method.encoders.registry import (
     register_encoder,
 )
 from pipeline.method.geometry.sampling import sample_surface
-from pipeline.method.geometry.transforms import random_rotation
+from pose_helpers import random_rotation
 
 # --- registry ---------------------------------------------------------------------
 
@@ -206,7 +207,7 @@ def test_every_encoder_manifest_builds_or_names_its_missing_weights(tmp_path, mo
     """Each manifest validates; built against an empty weights folder it either needs no
     weights or fails with WeightsNotFound listing the paths it looked in."""
     from pipeline.common.config import MANIFEST_DIR, load_encoder_manifest
-    from pipeline.method.encoders.registry import WeightsNotFound, needs_weights
+    from pipeline.method.encoders.registry import needs_weights
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no hub-cache weights either
     names = sorted(p.stem for p in (MANIFEST_DIR / "encoders").glob("*.yaml"))
@@ -220,3 +221,21 @@ def test_every_encoder_manifest_builds_or_names_its_missing_weights(tmp_path, mo
             assert err.value.looked_in and all(str(tmp_path) in str(p) or "hub" in str(p) for p in err.value.looked_in)
         else:
             assert build_encoder(spec, weights_dir=tmp_path / "empty").kind == man.kind
+
+
+def test_encoder_manifests_extend_a_base_that_is_not_listed(tmp_path):
+    """`extends:` in an encoder manifest merges the file over its base (a nested mapping
+    key by key, a list replaced); the bases under encoders/base/ are not encoders."""
+    from pipeline.common.config import encoder_manifest_names, load_encoder_manifest
+
+    names = encoder_manifest_names()
+    assert "dinov2-vits14" in names and not any(n.startswith("base") or "/" in n for n in names)
+    fp32, bf16 = load_encoder_manifest("dinov2-vits14-fp32"), load_encoder_manifest("dinov2-vits14")
+    assert fp32.params["precision"] == "fp32" and bf16.params["precision"] == "auto"
+    assert fp32.params["model"] == bf16.params["model"] == "vits14"
+    assert fp32.params["input_size"] == 224  # from base/dinov2.yaml, two levels up
+    (tmp_path / "encoders" / "base").mkdir(parents=True)
+    (tmp_path / "encoders" / "base" / "b.yaml").write_text("encoder: fpfh\nkind: geometric\nparams: {a: 1, b: 2}\n")
+    (tmp_path / "encoders" / "x.yaml").write_text("extends: base/b.yaml\nparams: {b: 3}\n")
+    assert load_encoder_manifest("x", tmp_path).params == {"a": 1, "b": 3}
+    assert encoder_manifest_names(tmp_path) == ["x"]

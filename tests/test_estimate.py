@@ -222,14 +222,14 @@ def test_model_side_keys_follow_the_model_only(case, tmp_path):
     change with the image."""
     from pipeline.common.config import load_run_with_overrides
     from pipeline.commands.estimate.frame import write_frame_dataset
-    from pipeline.commands.estimate.command import frame_plan
+    from pipeline.commands.estimate.command import frame_run_plan
 
     rgb, depth = est.load_rgb(case["rgb"]), case["depth_mm"]
 
     def keys(name, overrides=FAST, image=rgb, model=case["model"]):
         frame = write_frame_dataset(tmp_path / name, "truck", rgb=image, depth_mm=depth, K=case["K"], model_path=model,
                                     mask=case["mask_array"])
-        plan = frame_plan(load_run_with_overrides(overrides), frame, tmp_path / "cache")
+        plan = frame_run_plan(load_run_with_overrides(overrides), frame, tmp_path / "cache")[frame.root.name]
         return {s: plan[s].key for s in plan.stages}
 
     base = keys("a")
@@ -282,6 +282,46 @@ def test_estimate_equals_the_pipeline_on_the_wrapped_frame(case, tmp_path):
     pose = read_table(poses[0]).iloc[0]
     assert np.abs(np.reshape(pose.R, (3, 3)) - res.R).max() < 1e-6
     assert np.abs(np.asarray(pose.t) - res.t).max() < 1e-6
+
+
+@pytest.mark.slow
+def test_the_in_memory_estimator_recovers_the_known_pose(case):
+    """The Python API (README): the model side prepared in memory, one frame estimated
+    in memory, nothing written; the same method as the stages, hence the same bounds."""
+    from pipeline.commands.estimate.inputs import load_model, load_rgb_and_mode
+    from pipeline.common.config import load_run_with_overrides
+    from pipeline.method.estimator import Detection, Estimator, Observation, prepare_object
+    from pipeline.workflow.plan import build_encoders
+
+    run = load_run_with_overrides(FAST)
+    encoders = build_encoders(run)
+    mesh, diameter = load_model(case["model"])
+    obj = prepare_object(1, mesh, run.stages, encoders, diameter=diameter)
+    assert obj.features["points"].shape == (2000, 3) and obj.symmetries.is_trivial  # the truck has none
+    rgb, _ = load_rgb_and_mode(case["rgb"])
+    depth = case["depth_mm"].astype(np.float32)
+    result = Estimator({1: obj}, run.stages, encoders).estimate(Observation(rgb, depth, case["K"]),
+                                                                [Detection(1, case["mask_array"])])
+    assert len(result.poses) == 1 and len(result.registered.table) >= 3  # one hypothesis per source at least
+    pose = result.poses.iloc[0]
+    R, t = np.reshape(pose.R, (3, 3)), np.asarray(pose.t)
+    assert _rot_err_deg(R, case["R"]) < MAX_ROT_DEG
+    assert np.linalg.norm(t - case["t"]) < MAX_TRANS_MM
+    assert pose.sar_reason.startswith("no symmetry")
+
+
+def test_the_estimator_names_an_unknown_object_and_a_wrong_mask():
+    from pipeline.common.config import load_run
+    from pipeline.method.estimator import Detection, Estimator, Observation, PreparedObject
+
+    est = Estimator({1: PreparedObject(1, 100.0)}, load_run().stages, encoders=None)
+    obs = Observation(np.zeros((4, 5, 3), np.uint8), np.zeros((4, 5), np.float32), np.eye(3))
+    with pytest.raises(KeyError, match="object 2 is not among"):
+        est.estimate(obs, [Detection(2, np.ones((4, 5), bool))])
+    with pytest.raises(ValueError, match="mask size"):
+        est.estimate(obs, [Detection(1, np.ones((3, 3), bool))])
+    with pytest.raises(KeyError, match="features was not given"):
+        _ = est.objects[1].features
 
 
 def test_masks_from_pngs_and_detection_files(case, tmp_path):

@@ -15,17 +15,15 @@ from pipeline.method.geometry.sampling import (
     voxel_subsample,
 )
 from pipeline.method.geometry.transforms import (
-    compose,
     invert,
     look_at_rotation,
     matrix_to_rt,
     perturb_pose,
-    random_rotation,
     rotation_about_axis,
     rotation_angle_deg,
     rt_to_matrix,
-    transform_points,
 )
+from pose_helpers import compose, random_rotation, transform_points
 
 K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
 

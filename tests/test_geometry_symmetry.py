@@ -24,11 +24,11 @@ from pipeline.method.geometry.symmetry import (
     expand_symmetries,
     super_fibonacci_rotations,
     symmetries_from_dict,
-    symmetries_to_dict,
     transform_distance,
 )
 from pipeline.formats.bop.extent import point_cloud_diameter
-from pipeline.method.geometry.transforms import random_rotation, rotation_about_axis
+from pipeline.method.geometry.transforms import rotation_about_axis
+from pose_helpers import random_rotation
 from pipeline.evaluation.synth.objects import build_object
 
 N_POINTS = 20000
@@ -195,7 +195,7 @@ def test_json_round_trip():
         np.testing.assert_allclose(A, B)
     # Missing keys (BOP omits them for asymmetric objects) mean no symmetry.
     assert symmetries_from_dict({}).is_trivial
-    assert symmetries_to_dict(SymmetrySet()) == {"symmetries_discrete": [], "symmetries_continuous": []}
+    assert SymmetrySet().to_dict() == {"symmetries_discrete": [], "symmetries_continuous": []}
 
 
 def test_contains_continuous_member_and_coset():

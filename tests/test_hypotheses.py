@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pipeline.common.config import RefineParams, RegisterParams
-from pipeline.method.geometry.transforms import random_rotation, rotation_angle_deg
+from pipeline.method.geometry.transforms import rotation_angle_deg
+from pose_helpers import random_rotation
 from pipeline.method.registration.fusion import match_signal, modality_weight
 from pipeline.method.registration.ransac import RansacParams, distinct_poses, ransac_align, ransac_hypotheses
 from pipeline.method.scene_side import coarse_hypotheses, matchable_model, refine_candidates

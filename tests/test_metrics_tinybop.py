@@ -387,6 +387,7 @@ def test_score_stage_fails_on_a_bad_r_and_publishes_nothing(tmp_path: Path) -> N
     import contextlib
     from types import SimpleNamespace
 
+    from pipeline.common.config import RunManifest
     from pipeline.evaluation.metrics import NotARotationError
     from stages import score as score_stage
 
@@ -413,6 +414,7 @@ def test_score_stage_fails_on_a_bad_r_and_publishes_nothing(tmp_path: Path) -> N
         io = SimpleNamespace(input_dir=lambda stage: refine, bop=lambda: BopDataset(root), publish=publish,
                              params=SimpleNamespace(n_workers=1))
         plan = SimpleNamespace(io=lambda stage, item: io, results_csv_name=csv.name, scene_ids=[1], root=root,
+                               run=RunManifest(datasets=["icbin"]),  # no dask scheduler: the job's threads
                                dataset=SimpleNamespace(public_gt=public_gt, targets_file="test_targets_bop19.json",
                                                        split="test", split_type=None, vsd_delta=15.0))
         with pytest.raises(NotARotationError, match=rf"^{csv}: 1 of 6 estimates .* first: estimate 2 "):

@@ -128,6 +128,50 @@ def test_renamed_values_keep_their_keys():
     assert RunPlan(old)["synthtiny"]["refine"].key == RunPlan(new)["synthtiny"]["refine"].key
 
 
+def test_labels_and_parameters_come_from_the_declarations(monkeypatch):
+    """The plan takes each stage's signature label and keyed parameters from its
+    declaration (pipeline/workflow/stage_graph.py), in declaration order."""
+    import dataclasses
+
+    from pipeline.workflow import stage_graph
+
+    base = RunPlan(cfg.load_run({"datasets": "synthtiny"}))["synthtiny"]
+    assert list(base.stages) == list(stage_graph.STAGES)
+    specs = dict(stage_graph.STAGES)
+    specs["register"] = dataclasses.replace(specs["register"], label=lambda c: "custom",
+                                            params=lambda c: {**c.stage_params("register"), "extra": 1})
+    monkeypatch.setattr(stage_graph, "STAGES", specs)
+    changed = RunPlan(cfg.load_run({"datasets": "synthtiny"}))["synthtiny"]
+    assert changed["register"].signature.startswith("custom-") and changed["register"].params["extra"] == 1
+    for stage in ("synth", "render_templates", "symmetries", "model_features", "segment_prior", "scene_features"):
+        assert changed[stage].key == base[stage].key, stage
+    for stage in ("register", "refine", "score"):  # the new parameter reaches every key after it
+        assert changed[stage].key != base[stage].key, stage
+
+
+def test_a_bop_dataset_without_ground_truth_is_scored_apart(tmp_path):
+    """A BOP dataset on disk whose scenes lack ground truth: score's key says so (added
+    ground truth must rescore), and a grey one has grey templates and refinement."""
+    import shutil
+
+    from pathlib import Path
+
+    root = tmp_path / "bop"
+    shutil.copytree(Path(__file__).parent / "data" / "tinybop" / "icbin", root / "itodd")
+    for p in (root / "itodd").rglob("scene_gt.json"):
+        p.unlink()
+    (root / "detections").mkdir()
+    (root / "detections" / "cnos-fastsam_itodd-test_x.json").write_text("[]")
+    plan = RunPlan(cfg.load_run({"datasets": "itodd", "bop_root": str(root)}), cache=tmp_path / "cache")["itodd"]
+    assert "synth" not in plan.stages
+    assert plan["score"].params["ground_truth"] is False
+    assert plan["render_templates"].params["image_mode"] == "gray" and plan["refine"].params["image_mode"] == "gray"
+    assert plan["render_templates"].params["look_at"] == "bbox_centre"
+    assert plan["segment_prior"].signature.startswith("cnos-fastsam-top3-")
+    assert plan["render_templates"].upstream == {"dataset": plan.models_key}  # the models alone
+    assert plan["segment_prior"].upstream == {"dataset": plan.dataset_key, "prior": plan.prior_key}
+
+
 def test_a_dataset_manifest_given_as_a_path(tmp_path):
     """`datasets=path/to/name.yaml` (what `freeze estimate` writes) plans like a named one."""
     from pipeline.common.config import load_dataset_manifest

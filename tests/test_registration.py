@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.method.geometry.transforms import random_rotation, rotation_angle_deg
+from pipeline.method.geometry.transforms import rotation_angle_deg
+from pose_helpers import random_rotation
 from pipeline.method.registration.fusion import apply_pca, fit_pca, fuse
 from pipeline.method.registration.ransac import (
     RansacParams,

@@ -33,7 +33,7 @@ from pipeline.formats.bop import write_ply
 from pipeline.formats.bop.dataset import intrinsics_problem
 from pipeline.commands.cli import app
 from pipeline.common.config import ManifestError, load_run, load_run_with_overrides
-from test_datasets_check import BOXES, H, K, W, check, write_lmo
+from test_datasets_check import BOXES, K, check, write_lmo
 
 FREEZE = Path(sys.executable).parent / "freeze"
 ROOT = Path(__file__).resolve().parent.parent

@@ -66,10 +66,69 @@ def test_snakemake_inputs_are_the_declared_reads(tmp_path):
     assert plan.input_manifests("score", "all") == [plan["refine"].manifest("all"), plan["synth"].manifest("dataset")]
     assert [str(p) for p in plan.input_manifests("model_features", objs[0])] == [
         str(plan["render_templates"].manifest(objs[0])), str(plan["synth"].manifest("dataset"))]
-    # the Snakefile's rules take their inputs from here: no rule file names an upstream itself
-    for smk in (ROOT / "stages").glob("*.smk"):
-        text = smk.read_text()
-        assert "PLAN[wc.ds][" not in text.split("output:")[0], smk.name
+    # the Snakefile's rules are generated from the declarations: none is written out by
+    # hand, and none names an upstream itself
+    snakefile = (ROOT / "Snakefile").read_text()
+    assert "for _r in stage_rules():" in snakefile and "input:\n            stage_inputs(r.stage, r.kind)," in snakefile
+    for stage in STAGES:
+        assert f"rule {stage}:" not in snakefile, stage
+    assert not list((ROOT / "stages").glob("*.smk"))
+
+
+def test_rules_follow_the_declarations():
+    rules = stage_graph.stage_rules()
+    assert [r.name for r in rules] == ["synth", "render_templates", "symmetries", "model_features", "segment_prior",
+                                       "scene_features", "register", "refine", "refine_collect", "score"]
+    assert {(r.stage, r.kind) for r in rules} == {(n, k) for n, s in STAGES.items() for k in s.items}
+    assert stage_graph.rule_name("refine", "all") == "refine_collect"
+    with pytest.raises(ValueError, match="no 'obj' items"):
+        stage_graph.rule_name("refine", "obj")
+
+
+@pytest.mark.slow
+def test_snakemake_defines_one_rule_per_stage_and_kind(tmp_path):
+    """Snakemake itself lists the generated rules (and bop_all), each stage rule
+    described by its declaration's summary."""
+    import os
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items() if k != "FREEZE_RUN_JSON"}
+    env["FREEZE_CACHE"] = str(tmp_path / "cache")
+    proc = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-s", str(ROOT / "Snakefile"),
+                           "--directory", str(tmp_path), "--list-rules", "--config", "datasets=synthtiny"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    listed = {line.split(" ", 1)[0]: line for line in proc.stdout.splitlines() if line and not line.startswith(" ")}
+    assert set(listed) >= {r.name for r in stage_graph.stage_rules()} | {"bop_all"}
+    assert STAGES["symmetries"].summary in listed["symmetries"]
+
+
+def test_side_and_file_helpers():
+    """What freeze estimate runs (the model and scene sides) and the stages whose times
+    per image the results CSV sums come from the declarations."""
+    assert stage_graph.stages_of_side("model") == ("render_templates", "symmetries", "model_features")
+    assert stage_graph.stages_of_side("scene") == ("segment_prior", "scene_features", "register", "refine")
+    assert stage_graph.stages_of_side("evaluation") == ("score",)
+    assert stage_graph.stages_of_side("dataset") == ("synth",)
+    timed = stage_graph.stages_writing("images.parquet", "scene")
+    assert timed == ("scene_features", "register", "refine")
+    assert set(timed) <= set(STAGES["refine"].reads_for("all"))  # refine's results CSV may read them all
+    assert set(stage_graph.stages_writing("features.zarr", "obj")) == {"model_features"}
+
+
+def test_labels_and_parameters_are_declared():
+    """Every stage's signature label and keyed parameters are its declaration's: the
+    plan calls them (test_plan.py pins the keys they give)."""
+    rp = RunPlan(cfg.load_run({"datasets": "synthtiny"}), cache=Path("/nonexistent-cache"))
+    plan = rp["synthtiny"]
+    ctx = stage_graph.PlanContext(run=plan.run, dataset=plan.dataset, encoder_entries=lambda: rp.encoders)
+    for name, spec in STAGES.items():
+        assert plan[name].signature == f"{spec.plan_label(ctx)}-{plan[name].key[:8]}", name
+        assert plan[name].params == spec.plan_params(ctx), name
+    # undeclared, they are the stage's name and its parameters in the run manifest
+    bare = dataclasses.replace(STAGES["register"], label=None, params=None)
+    assert bare.plan_label(ctx) == "register" and bare.plan_params(ctx) == plan.run.stages.register.model_dump()
+    assert dataclasses.replace(STAGES["synth"], params=None).plan_params(ctx) == {}  # no parameters of its own
 
 
 def test_stage_io_refuses_undeclared_reads_and_writes(tmp_path):
@@ -91,16 +150,70 @@ def test_stage_io_refuses_undeclared_reads_and_writes(tmp_path):
     assert not io.out.item_dir("obj_000002").exists()  # nothing published
 
 
-def test_stage_modules_name_their_algorithm_one_hop_away():
-    """Each stage module's docstring names the library function holding its algorithm,
-    the one its declaration names, and that function exists."""
+def _resolve(dotted: str):
+    """The object a dotted name points to: the longest importable module prefix, then attributes."""
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[i:]:
+            obj = getattr(obj, attr)
+        return obj
+    raise ModuleNotFoundError(dotted)
+
+
+def _calls_of(module_path: Path, function: str) -> set[str]:
+    """The names called (``f(...)``, ``x.f(...)``) in ``function`` of a module, and in the
+    module's own functions it calls (one level: ``run`` -> ``_collect``)."""
+    import ast
+
+    tree = ast.parse(module_path.read_text())
+    funcs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
+
+    def called(node: ast.AST) -> set[str]:
+        out = set()
+        for c in ast.walk(node):
+            if isinstance(c, ast.Call):
+                f = c.func
+                out.add(f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else "")
+        return out
+
+    names = called(funcs[function])
+    for helper in names & set(funcs):
+        names |= called(funcs[helper])
+    return names
+
+
+def test_stage_modules_call_their_algorithm_one_hop_away():
+    """Each stage's ``run`` calls the library function (or the estimator's method) its
+    declaration names, directly: read from the module's syntax tree, not its docstring;
+    every function the declarations name (the docs' stage table) exists."""
     import importlib
 
     for name, spec in STAGES.items():
         module = importlib.import_module(spec.module)
-        assert spec.algorithm in (module.__doc__ or "").replace("\n", " "), name
-        mod, _, func = spec.algorithm.rpartition(".")
-        assert callable(getattr(importlib.import_module(mod), func)), spec.algorithm
+        for kind in spec.items:
+            for dotted in spec.algorithms_for(kind):
+                assert callable(_resolve(dotted)), dotted
+        calls = _calls_of(Path(module.__file__), "run")
+        parts = spec.algorithm.split(".")
+        wanted = parts[-2:] if parts[-2][:1].isupper() else parts[-1:]  # Class.method: the class is made, the method called
+        missing = [w for w in wanted if w not in calls]
+        assert not missing, f"stages/{name}.py run() does not call {spec.algorithm} ({', '.join(missing)} not called)"
+
+
+def test_the_one_hop_check_sees_what_run_calls():
+    """The check reads calls, not names in the text: register's run makes an Estimator
+    and calls its register, and only mentions register_candidates in its docstring."""
+    root = Path(__file__).resolve().parent.parent
+    calls = _calls_of(root / "stages" / "register.py", "run")
+    assert {"Estimator", "register", "publish"} <= calls and "register_candidates" not in calls
+    assert "_collect" in _calls_of(root / "stages" / "refine.py", "run")
+    assert "write_results_csv" in _calls_of(root / "stages" / "refine.py", "run")  # through _collect, one level
 
 
 # ------------------------------------------------------------- what stages really open

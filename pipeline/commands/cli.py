@@ -83,7 +83,8 @@ def encoders(
     (found or not, and the exact path looked in), and which are the paper's (GeDi +
     DINOv2 ViT-g/14) and which weight-free stand-ins for them."""
     from pipeline.common.config import ManifestError, encoder_manifest_names, load_encoder_manifest
-    from pipeline.method.encoders.registry import (EncoderSpec, WeightsNotFound, build_encoder, known_encoders, needs_weights,
+    from pipeline.formats.weights.formats import WeightsNotFound
+    from pipeline.method.encoders.registry import (EncoderSpec, build_encoder, known_encoders, needs_weights,
                                             resolve_weights_dir)
     from pipeline.common.stand_in import paper_configuration, paper_fetch, paper_line
     from pipeline.formats.weights.formats import NotAWeightsFile

@@ -6,7 +6,7 @@ import typer
 
 from pipeline.formats.bop.errors import BopFormatError
 from pipeline.common.config import ManifestError
-from pipeline.method.encoders.registry import WeightsNotFound
+from pipeline.formats.weights.formats import WeightsNotFound
 from pipeline.common.store import DamagedArtifact, StorageError
 
 USER_ERRORS: tuple[type[Exception], ...] = (BopFormatError, ManifestError, DamagedArtifact, StorageError,

@@ -1,15 +1,15 @@
 """``freeze inspect``, ``freeze ls``, ``freeze gc`` and ``freeze show features``.
 
 The library is :mod:`pipeline.workflow.artifacts` (and :mod:`pipeline.views.features_figure`);
-this module only parses options and prints. :func:`register` adds the commands to the
-``freeze`` app and its ``show`` sub-app.
+this module only parses options and prints. :func:`add_commands` adds the commands to the
+``freeze`` app and its ``show`` sub-app (one ``_add_*_command`` function per command).
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import typer
 from rich.console import Console
@@ -19,6 +19,10 @@ from rich.tree import Tree
 
 from pipeline.commands.common import parse_overrides
 from pipeline.workflow.artifacts import human_bytes
+
+if TYPE_CHECKING:
+    from pipeline.commands.verify import VerifyReport
+    from pipeline.workflow.artifacts import CacheListing, Removal
 
 
 def _out() -> Console:
@@ -203,7 +207,18 @@ _STALE_NOTE = ("'Current' means: a stage signature the plan of the given run con
 
 
 def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
-    """Add ``inspect``, ``ls``, ``gc`` and ``verify`` to ``app`` and ``features`` to ``show_app``."""
+    """Add ``verify``, ``inspect``, ``ls`` and ``gc`` to ``app`` and ``features`` and
+    ``hypotheses`` to ``show_app`` (in that order: the order of ``--help``)."""
+    _add_verify_command(app)
+    _add_inspect_command(app)
+    _add_ls_command(app)
+    _add_gc_command(app)
+    _add_show_features_command(show_app)
+    _add_show_hypotheses_command(show_app)
+
+
+def _add_verify_command(app: typer.Typer) -> None:
+    """Add ``freeze verify``: check a cache's artifacts against their manifests."""
 
     @app.command("verify")
     def verify_cmd(
@@ -233,33 +248,43 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         with progress_bar(f"verify {root}", total=len(scan.artifacts), enabled=progress) as bar:
             report = verify_cache(root, dataset, checksums=not quick, repair=repair,
                                   leftover_min_age_s=tmp_min_age * 60, advance=bar.advance, scan=scan)
-        out = _err()
-        for item, problems in report.damaged.items():
-            for line in problems:
-                out.print(f"[red]damaged: {escape(line)}")
-        for p in report.leftovers:
-            out.print(f"[yellow]leftover of a killed run: {escape(str(p))}")
-        shown = 20  # a user's folder of thousands of files is one line already; links are listed each
-        for p, why in report.left_alone[:shown]:
-            out.print(f"left alone: {escape(str(p))} ({escape(why)})")
-        if len(report.left_alone) > shown:
-            out.print(f"left alone: {len(report.left_alone) - shown} more paths that are not artifacts")
-        if report.young_leftovers:
-            out.print(f"left alone: {len(report.young_leftovers)} leftover(s) younger than {tmp_min_age:g} min (a "
-                      f"running job's, perhaps), e.g. {escape(str(report.young_leftovers[0]))}")
-        what = "sizes" if quick else "sizes and checksums"
-        out.print(f"{report.checked} artifact items checked ({what}): {len(report.damaged)} damaged, "
-                  f"{len(report.leftovers)} leftovers; {len(report.left_alone)} paths left alone (not artifacts)")
-        for line in report.errors:
-            out.print(f"[red]error: {escape(line)}")
-        if report.errors:
-            raise typer.Exit(1)
-        if repair and report.removed:
-            out.print(f"removed {len(report.removed)}; the next run rebuilds the damaged items")
-        if not report.ok:
-            out.print("some were not removed (see 'left alone' above)" if repair else
-                      "run `freeze verify --repair` to remove them; the next run rebuilds the damaged items")
-            raise typer.Exit(1)
+        _print_verification(report, repair=repair, quick=quick, tmp_min_age=tmp_min_age)
+
+
+def _print_verification(report: VerifyReport, *, repair: bool, quick: bool, tmp_min_age: float) -> None:
+    """Print ``freeze verify``'s findings (a :func:`pipeline.commands.verify.verify_cache`
+    report) on stderr; ``typer.Exit(1)`` when it found errors, or damage left in place."""
+    out = _err()
+    for item, problems in report.damaged.items():
+        for line in problems:
+            out.print(f"[red]damaged: {escape(line)}")
+    for p in report.leftovers:
+        out.print(f"[yellow]leftover of a killed run: {escape(str(p))}")
+    shown = 20  # a user's folder of thousands of files is one line already; links are listed each
+    for p, why in report.left_alone[:shown]:
+        out.print(f"left alone: {escape(str(p))} ({escape(why)})")
+    if len(report.left_alone) > shown:
+        out.print(f"left alone: {len(report.left_alone) - shown} more paths that are not artifacts")
+    if report.young_leftovers:
+        out.print(f"left alone: {len(report.young_leftovers)} leftover(s) younger than {tmp_min_age:g} min (a "
+                  f"running job's, perhaps), e.g. {escape(str(report.young_leftovers[0]))}")
+    what = "sizes" if quick else "sizes and checksums"
+    out.print(f"{report.checked} artifact items checked ({what}): {len(report.damaged)} damaged, "
+              f"{len(report.leftovers)} leftovers; {len(report.left_alone)} paths left alone (not artifacts)")
+    for line in report.errors:
+        out.print(f"[red]error: {escape(line)}")
+    if report.errors:
+        raise typer.Exit(1)
+    if repair and report.removed:
+        out.print(f"removed {len(report.removed)}; the next run rebuilds the damaged items")
+    if not report.ok:
+        out.print("some were not removed (see 'left alone' above)" if repair else
+                  "run `freeze verify --repair` to remove them; the next run rebuilds the damaged items")
+        raise typer.Exit(1)
+
+
+def _add_inspect_command(app: typer.Typer) -> None:
+    """Add ``freeze inspect``: what one artifact holds and what it was built from."""
 
     @app.command("inspect")
     def inspect_cmd(
@@ -290,6 +315,10 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         else:
             print_inspection(info, _out())
 
+
+def _add_ls_command(app: typer.Typer) -> None:
+    """Add ``freeze ls``: the artifacts per dataset and stage, current or stale."""
+
     @app.command("ls", help="List the artifacts per dataset and stage: signature, items, size, date, and whether the "
                             "current plan points to them (current) or not (stale).\n\n" + _STALE_NOTE)
     def ls_cmd(
@@ -306,6 +335,10 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
             print(json.dumps(listing.to_dict(), indent=2))
         else:
             print_listing(listing, _out())
+
+
+def _add_gc_command(app: typer.Typer) -> None:
+    """Add ``freeze gc``: remove the stale signature folders and leftovers, after asking."""
 
     @app.command("gc", help="Remove the stale artifact signature folders (those the current plan does not point to) "
                             "and the leftover .tmp-*/.old-* folders of interrupted publishes, after showing what goes and "
@@ -331,12 +364,7 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         if not removals:
             out.print("nothing to remove")
             return
-        t = Table("remove", "size", "why", title=f"garbage in {listing.cache}", title_justify="left")
-        for r in removals:
-            t.add_row(str(Path(r.path).relative_to(listing.cache)), human_bytes(r.size_bytes), r.reason)
-        out.print(t)
-        total = sum(r.size_bytes for r in removals)
-        out.print(f"{len(removals)} folder(s), {human_bytes(total)} to free")
+        _print_removals(listing, removals, out)
         if not yes and not typer.confirm("Remove them?", default=False):
             out.print("nothing removed")
             raise typer.Exit(1)
@@ -346,6 +374,20 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
             _err().print(f"[red]{e}")
             raise typer.Exit(2)
         out.print(f"removed {len(removals)} folder(s), freed {human_bytes(freed)}")
+
+
+def _print_removals(listing: CacheListing, removals: list[Removal], out: Console) -> None:
+    """The table of what ``freeze gc`` removes (path in the cache, size, why) and the total."""
+    t = Table("remove", "size", "why", title=f"garbage in {listing.cache}", title_justify="left")
+    for r in removals:
+        t.add_row(str(Path(r.path).relative_to(listing.cache)), human_bytes(r.size_bytes), r.reason)
+    out.print(t)
+    total = sum(r.size_bytes for r in removals)
+    out.print(f"{len(removals)} folder(s), {human_bytes(total)} to free")
+
+
+def _add_show_features_command(show_app: typer.Typer) -> None:
+    """Add ``freeze show features``: the feature PCA figure of a model and a candidate."""
 
     @show_app.command("features")
     def show_features(
@@ -377,6 +419,10 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         for note in case.notes:
             _err().print(f"[yellow]{note}")
         _out().print(f"object {obj}, scene {case.scene_id}, image {case.im_id}, candidate {case.cand_id}: {path}")
+
+
+def _add_show_hypotheses_command(show_app: typer.Typer) -> None:
+    """Add ``freeze show hypotheses``: every coarse hypothesis of some candidates, as verified."""
 
     @show_app.command("hypotheses")
     def show_hypotheses(

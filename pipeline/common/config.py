@@ -5,7 +5,8 @@ Three kinds of YAML manifest live in ``manifests/``:
 - ``runs/<name>.yaml``: what ``bop_all`` runs: the method name, the datasets, which
   encoder manifests to use, and the parameters of every stage.
 - ``datasets/<name>.yaml``: one dataset (synthetic preset or a BOP dataset on disk).
-- ``encoders/<name>.yaml``: one encoder configuration (registry name + parameters).
+- ``encoders/<name>.yaml``: one encoder configuration (registry name + parameters); it
+  may ``extends:`` a shared part in ``encoders/base/`` (which is not an encoder itself).
 
 All are validated by the pydantic models below; a bad value fails with the file and
 the field. Snakemake's ``--config`` may override a few top-level run keys with plain
@@ -23,7 +24,7 @@ import os
 import re
 import warnings
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, Callable, Literal, Mapping
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -119,6 +120,13 @@ class RegisterParams(_Strict):
         return self
 
 
+RENAMED_VALUES: dict[tuple[str, str], dict[str, str]] = {("refine", "select_by"): {"score": "evidence"}}
+"""(stage, parameter) -> {former value: its name now}: values renamed after caches
+existed. A manifest may still give the former value; the keys hash it under the former
+spelling (:data:`pipeline.workflow.stage_graph.LEGACY_KEY_SPELLING`), so the rename keeps
+every key."""
+
+
 class RefineParams(_Strict):
     icp: bool = Field(True, description="refine every registered candidate by ICP (False: keep the RANSAC pose)")
     max_corr_frac: float = Field(0.1, gt=0, description="largest ICP correspondence distance, fraction of the diameter")
@@ -165,7 +173,7 @@ class RefineParams(_Strict):
     @field_validator("select_by", mode="before")
     @classmethod
     def _former_name(cls, v: Any) -> Any:
-        return "evidence" if v == "score" else v
+        return RENAMED_VALUES[("refine", "select_by")].get(v, v)
 
 
 class SymmetriesParams(_Strict):
@@ -286,10 +294,6 @@ class DatasetManifest(_Strict):
     image_size: tuple[int, int] | None = Field(None, description="test image (width, height) in px")
     public_gt: bool = Field(True, description="false when the test ground truth is private (ITODD, HB): the "
                                               "results CSV is made for the BOP server and no AR is computed here")
-    fingerprint: Literal["layout", "content"] = Field(
-        "content", description="kept for older manifests; either value now gives the same keys: the bytes of every "
-                               "file the stages read, hashed once and remembered by (path, size, mtime, inode) in "
-                               "<cache>/.file-hashes.sqlite")
 
     @property
     def image_mode(self) -> str:
@@ -437,16 +441,20 @@ def _validate(model: type[BaseModel], data: Mapping[str, Any], source: str,
 
 
 def encoder_manifest_names(manifest_dir: Path = MANIFEST_DIR) -> list[str]:
-    """The names of the encoder manifests, ``<manifest_dir>/encoders/<name>.yaml``, sorted."""
+    """The names of the encoder manifests, ``<manifest_dir>/encoders/<name>.yaml``, sorted.
+    The shared parts they extend (``encoders/base/*.yaml``) are not encoders and not listed."""
     return sorted(p.stem for p in (Path(manifest_dir) / "encoders").glob("*.yaml"))
 
 
 def load_encoder_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> EncoderManifest:
+    """The encoder manifest ``<manifest_dir>/encoders/<name>.yaml``, with ``extends:
+    OTHER.yaml`` (relative to the file, e.g. ``base/dinov2.yaml``) resolved as for run
+    manifests: the other manifest, with this file's keys merged over it."""
     path = Path(manifest_dir) / "encoders" / f"{name}.yaml"
     if not path.exists():
         known = encoder_manifest_names(manifest_dir)
         raise ManifestError(f"{path}: no encoder manifest named '{name}' (known: {', '.join(known)})")
-    return _validate(EncoderManifest, _read_yaml(path), str(path))
+    return _validate(EncoderManifest, _read_encoder_yaml(path), str(path))
 
 
 def is_manifest_path(entry: str) -> bool:
@@ -500,6 +508,31 @@ def _read_run_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     raises ``ManifestError`` naming it; so does a ``bop_root`` that is not a path
     string, which ``load_run`` turns into an absolute path before validation.
     """
+    data = _read_extending_yaml(path, seen, _read_run_yaml)
+    root = data.get("bop_root")
+    if root is not None and not (isinstance(root, str) and "\0" not in root):
+        raise ManifestError(f"{path}: field 'bop_root': expected a folder path, got {root!r:.80}")
+    return data
+
+
+def _read_encoder_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """An encoder manifest's mapping, with ``extends: OTHER.yaml`` resolved as for run
+    manifests (:func:`_read_extending_yaml`): ``manifests/encoders/dinov2-*.yaml``
+    extend ``base/dinov2.yaml``."""
+    return _read_extending_yaml(path, seen, _read_encoder_yaml)
+
+
+def _read_extending_yaml(path: Path, seen: tuple[Path, ...],
+                         read_base: Callable[[Path, tuple[Path, ...]], dict[str, Any]]) -> dict[str, Any]:
+    """The mapping of the manifest ``path``, with ``extends: OTHER.yaml`` (relative to
+    the file) resolved: ``read_base(OTHER, seen)`` (the same reader, so that chains
+    resolve), with this file's keys merged over it by :func:`_deep_merge` (nested
+    mappings merge key by key; lists and scalars are replaced). ``seen``: the files
+    extending this one, to refuse a cycle.
+
+    Any unreadable file (a folder, not UTF-8 text, YAML nested too deeply for the parser)
+    raises ``ManifestError`` naming it.
+    """
     try:
         data = _read_yaml(path)
     except UnicodeDecodeError as e:
@@ -525,10 +558,7 @@ def _read_run_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
             raise ManifestError(f"{path}: field 'extends' makes a cycle through {base_path}")
         if base_path.is_dir():
             raise ManifestError(f"{path}: field 'extends': {base_path} is a directory, not a manifest file")
-        data = _deep_merge(_read_run_yaml(base_path, seen + (path.resolve(),)), data)
-    root = data.get("bop_root")
-    if root is not None and not (isinstance(root, str) and "\0" not in root):
-        raise ManifestError(f"{path}: field 'bop_root': expected a folder path, got {root!r:.80}")
+        data = _deep_merge(read_base(base_path, seen + (path.resolve(),)), data)
     return data
 
 

@@ -32,6 +32,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any, Callable, Generic, Iterator, Sequence, TypeVar
 
 from pipeline.common.config import ManifestError
@@ -121,6 +122,19 @@ class PerThread(Generic[T]):
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.factory = state["factory"]
         self._local = threading.local()
+
+
+@dataclass(frozen=True)
+class ThreadMethod:
+    """``tools.get().<name>(*args)``: a method of the calling thread's object of a
+    :class:`PerThread` (a verifier, a fine ICP), as one picklable callable: a copy sent
+    to a cluster's worker calls that worker's own object."""
+
+    tools: PerThread
+    name: str
+
+    def __call__(self, *args: Any) -> Any:
+        return getattr(self.tools.get(), self.name)(*args)
 
 
 class Mapper:

@@ -1,5 +1,5 @@
 """The CPU threads a stage job may use: Snakemake gives each rule's jobs ``threads``
-(declared in ``stages/*.smk``), and the job keeps its numeric libraries within them, so
+(declared in each stage's ``StageSpec``), and the job keeps its numeric libraries within them, so
 that jobs running side by side do not oversubscribe the cores."""
 
 from __future__ import annotations

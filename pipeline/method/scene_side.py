@@ -12,7 +12,8 @@ mesh when asked, never on artifact folders.
    and visual features of the candidate's square crop sampled at their pixels.
 2. :func:`register_candidates`: per object, the model's visual features reduced by PCA
    (:func:`matchable_model`); per candidate, the fused features matched to the model's
-   and a coarse pose by RANSAC (:func:`coarse_pose`).
+   and coarse hypotheses by RANSAC on each modality's matches and on the fused ones
+   (:func:`coarse_hypotheses`).
 3. :func:`refine_candidates`: ICP of every registered candidate and its evidence (RANSAC
    inlier ratio x ICP fitness); :func:`choose_estimates`: up to ``inst_count`` distinct
    estimates per target; :func:`refine_by_symmetry`: the symmetry-aware refinement of
@@ -385,20 +386,6 @@ def _modality_weights(model: MatchableModel, points: np.ndarray, feats: Mapping[
         strong = max(own, key=own.get)
         w = {m: float(m == strong) for m in z}
     return CoarseResult(found, w["geometric"], w["visual"], own["geometric"], own["visual"], agree)
-
-
-def coarse_pose(model: MatchableModel, points: np.ndarray, geometric: np.ndarray, visual: np.ndarray, diameter: float,
-                params: RegisterParams, seed: int):
-    """The paper's coarse pose of a candidate's points (k, 3) mm with their geometric
-    (k, G) and visual (k, C) features: fused at equal weights, matched, RANSAC
-    (:func:`pipeline.method.registration.ransac.ransac_align`). Returns its ``Registration``."""
-    from pipeline.method.registration.fusion import apply_pca, fuse
-    from pipeline.method.registration.ransac import RansacParams, ransac_align
-
-    fused = fuse(geometric, apply_pca(model.basis, visual) if model.basis is not None else None)
-    ransac = RansacParams(inlier_frac=params.inlier_frac, max_iterations=params.max_iterations,
-                          confidence=params.confidence, mutual=params.mutual)
-    return ransac_align(model.points, model.fused, points, fused, diameter, params=ransac, seed=seed)
 
 
 def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarray],

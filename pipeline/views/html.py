@@ -508,148 +508,200 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
     sar = sar_figures(plan)
     hyp_png = hypotheses_png(plan)
     timings = stage_timings(plan)
+    parts: list[str] = [
+        *_header_section(rp, plan, dataset, run_label),
+        *_recall_section(dataset, scores, table),
+        *_visibility_section(scores),
+        *_timing_section(timings),
+        *_samples_section(table, panels, no_gt),
+        *_hypotheses_section(plan, hyp_png),
+        *_sar_section(sar),
+    ]
+    parts.append("<h2>Run manifest</h2>")
+    parts.append(f"<details><summary>resolved run manifest (JSON)</summary><pre>"
+                 f"{_e(json.dumps(rp.run.model_dump(), indent=2))}</pre></details>")
+    parts.append(f'<p class="small">Page built in {time.perf_counter() - t0:.1f} s by '
+                 f'<code>pipeline.views.html</code>.</p>')
+    body = "\n".join(parts)
+    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+            f'<meta name="viewport" content="width=device-width, initial-scale=1">\n'
+            f"<title>FreeZe report: {_e(dataset)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
+
+
+def _header_section(rp, plan, dataset: str, run_label: str | None) -> list[str]:
+    """The page's title, the intro (method, dataset, encoders, refinement signature, run,
+    cache folder, time generated) and the stand-in note: HTML fragments. ``plan``: the
+    dataset's plan, ``rp[dataset]``."""
     enc = rp.encoders
     ds = plan.dataset
-    parts: list[str] = []
-    add = parts.append
-
-    # ---- header
     generated = time.strftime("%Y-%m-%d %H:%M:%S %Z", time.localtime())
     geo, vis = enc["geometric"], enc["visual"]
     run_txt = f"run manifest <code>{_e(run_label)}</code>" if run_label else "run manifest as resolved below"
-    add(f"<h1>FreeZe report: {_e(dataset)}</h1>")
-    add(f'<p class="intro">Method <b>{_e(rp.run.method)}</b> on <b>{_e(dataset)}</b> ({_e(ds.kind)}, split '
+    return [
+        f"<h1>FreeZe report: {_e(dataset)}</h1>",
+        f'<p class="intro">Method <b>{_e(rp.run.method)}</b> on <b>{_e(dataset)}</b> ({_e(ds.kind)}, split '
         f'{_e(ds.split)}, {len(plan.obj_ids)} objects, {len(plan.scene_ids)} scenes); geometric encoder '
         f'<b>{_e(geo["manifest"])}</b> (<code>{_e(geo["signature"])}</code>, v{_e(geo["version"])}), visual encoder '
         f'<b>{_e(vis["manifest"])}</b> (<code>{_e(vis["signature"])}</code>, v{_e(vis["version"])}); refinement '
         f'<code>{_e(plan["refine"].signature)}</code>; {run_txt}. Generated {_e(generated)} from the artifacts in '
-        f'<code>{_e(rp.cache / dataset)}</code>.</p>')
-    add(stand_in_note(enc))
+        f'<code>{_e(rp.cache / dataset)}</code>.</p>',
+        stand_in_note(enc),
+    ]
 
-    # ---- 1. AR table
-    add("<h2>1. Average recall (BOP19)</h2>")
+
+def _recall_section(dataset: str, scores: dict[str, Any], table: pd.DataFrame) -> list[str]:
+    """Section 1: the AR table (AR and its parts, targets, estimates, s / image), the
+    scorer's notes, AR per object with its correct estimates (``table``: the
+    :func:`estimate_table`), and the recall per threshold: HTML fragments."""
+    summary = scores["summary"]
     t_img = summary.get("mean_time_per_image")
-    add(_table(["dataset", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "targets", "estimates", "s / image"],
-               [[_e(dataset)] + [fmt(summary.get(k)) for k in METRICS]
-                + [fmt(summary.get("n_targets")), fmt(summary.get("n_estimates")),
-                   fmt(t_img, 2) if t_img is not None and t_img >= 0 else "-"]],
-               cls="summary",
-               keys=["dataset", *METRICS, "n_targets", "n_estimates", "mean_time_per_image"]))
-    add(f'<p class="note">targets: valid ground-truth instances to find; estimates: lines of the results CSV '
-        f'({fmt(summary.get("n_evaluated"))} evaluated); s / image: mean time per image as written in the CSV '
-        f'(prior + scene features + registration + refinement). AR = mean(AR_VSD, AR_MSSD, AR_MSPD).</p>')
+    out = ["<h2>1. Average recall (BOP19)</h2>"]
+    out.append(_table(["dataset", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "targets", "estimates", "s / image"],
+                      [[_e(dataset)] + [fmt(summary.get(k)) for k in METRICS]
+                       + [fmt(summary.get("n_targets")), fmt(summary.get("n_estimates")),
+                          fmt(t_img, 2) if t_img is not None and t_img >= 0 else "-"]],
+                      cls="summary",
+                      keys=["dataset", *METRICS, "n_targets", "n_estimates", "mean_time_per_image"]))
+    out.append(f'<p class="note">targets: valid ground-truth instances to find; estimates: lines of the results CSV '
+               f'({fmt(summary.get("n_evaluated"))} evaluated); s / image: mean time per image as written in the CSV '
+               f'(prior + scene features + registration + refinement). AR = mean(AR_VSD, AR_MSSD, AR_MSPD).</p>')
     for note in summary.get("notes") or []:
-        add(f'<p class="note">Note: {_e(note)}</p>')
+        out.append(f'<p class="note">Note: {_e(note)}</p>')
+    out.append("<h3>Per object</h3>")
+    out.append(_table(["object", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "targets", "correct estimates"],
+                      _per_object_rows(scores, table), cls="per-object",
+                      keys=["obj_id", *METRICS, "n_targets", "correct"]))
+    out.append(f'<p class="note">correct estimates: evaluated estimates whose MSSD to the nearest ground-truth '
+               f'instance is at most {CORRECT_MSSD_FRAC:g} × the object\'s diameter (the rule of section 4).</p>')
+    if scores.get("recalls"):
+        out.append("<h3>Recall per threshold</h3>")
+        out.append(_recall_table(scores["recalls"]))
+    return out
+
+
+def _per_object_rows(scores: dict[str, Any], table: pd.DataFrame) -> list[list[str]]:
+    """Rows of the per-object table: object id, AR and its parts, targets and "correct /
+    evaluated" estimates (from ``table``; "-" when it has none of the object). Rows of
+    ``scores["per_object"]`` naming no object are left out."""
     correct_by_obj = table.groupby("obj_id")["correct"].agg(["sum", "count"]) if len(table) else None
-    obj_rows = []
+    rows = []
     for o in scores.get("per_object") or []:
         if not np.isfinite(_finite(o.get("obj_id"))):
             continue  # a row naming no object has nothing to show
         oid = int(o["obj_id"])
         c = (f"{int(correct_by_obj.loc[oid, 'sum'])} / {int(correct_by_obj.loc[oid, 'count'])}"
              if correct_by_obj is not None and oid in correct_by_obj.index else "-")
-        obj_rows.append([str(oid)] + [fmt(o.get(k)) for k in METRICS] + [fmt(o.get("n_targets")), c])
-    add("<h3>Per object</h3>")
-    add(_table(["object", "AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "targets", "correct estimates"], obj_rows,
-               cls="per-object", keys=["obj_id", *METRICS, "n_targets", "correct"]))
-    add(f'<p class="note">correct estimates: evaluated estimates whose MSSD to the nearest ground-truth instance is '
-        f'at most {CORRECT_MSSD_FRAC:g} × the object\'s diameter (the rule of section 4).</p>')
-    if scores.get("recalls"):
-        add("<h3>Recall per threshold</h3>")
-        add(_recall_table(scores["recalls"]))
+        rows.append([str(oid)] + [fmt(o.get(k)) for k in METRICS] + [fmt(o.get("n_targets")), c])
+    return rows
 
-    # ---- 2. visibility
-    add("<h2>2. Average recall against visible fraction</h2>")
+
+def _visibility_section(scores: dict[str, Any]) -> list[str]:
+    """Section 2: the figure of AR per visible fraction (or a note that there is none)."""
+    out = ["<h2>2. Average recall against visible fraction</h2>"]
     bins = scores.get("per_visibility") or []
     if bins:
-        add(f'<figure class="plot">{_img(plots.visibility_figure(bins), "AR per visible fraction")}'
-            f'<figcaption>AR and its components per bin of the visible fraction of the ground-truth instance '
-            f'(a found target counts in the bin of the instance it was matched to); grey bars: targets per bin. '
-            f'Bins without targets have no point.</figcaption></figure>')
+        out.append(f'<figure class="plot">{_img(plots.visibility_figure(bins), "AR per visible fraction")}'
+                   f'<figcaption>AR and its components per bin of the visible fraction of the ground-truth instance '
+                   f'(a found target counts in the bin of the instance it was matched to); grey bars: targets per '
+                   f'bin. Bins without targets have no point.</figcaption></figure>')
     else:
-        add('<p class="note">scores.json has no per-visibility breakdown.</p>')
+        out.append('<p class="note">scores.json has no per-visibility breakdown.</p>')
+    return out
 
-    # ---- 3. timing
-    add("<h2>3. Time and memory per stage</h2>")
-    add(_table(["stage", "signature", "jobs", "wall time (s)", "share", "peak RSS (MB)"],
-               [[_e(r.stage), f"<code>{_e(r.signature)}</code>", str(r.jobs), fmt(r.wall_s, 1),
-                 f"{fmt(100 * r.share, 1)}%", fmt(r.peak_rss_mb, 0)] for r in timings],
-               cls="timing", left=2, keys=["stage", "signature", "jobs", "wall_s", "share", "peak_rss_mb"]))
+
+def _timing_section(timings: list[StageTiming]) -> list[str]:
+    """Section 3: wall time (s) and peak RSS (MB) per stage, as a table and a figure."""
+    out = ["<h2>3. Time and memory per stage</h2>"]
+    out.append(_table(["stage", "signature", "jobs", "wall time (s)", "share", "peak RSS (MB)"],
+                      [[_e(r.stage), f"<code>{_e(r.signature)}</code>", str(r.jobs), fmt(r.wall_s, 1),
+                        f"{fmt(100 * r.share, 1)}%", fmt(r.peak_rss_mb, 0)] for r in timings],
+                      cls="timing", left=2, keys=["stage", "signature", "jobs", "wall_s", "share", "peak_rss_mb"]))
     total = float(np.nansum([r.wall_s for r in timings])) if timings else 0.0
-    add(f'<p class="note">From every <code>_manifest.json</code> of the dataset\'s current stage folders: '
-        f'{sum(r.jobs for r in timings)} jobs, {total:.1f} s of job wall time in all (jobs may have run in '
-        f'parallel); peak RSS is the largest of any one job.</p>')
+    out.append(f'<p class="note">From every <code>_manifest.json</code> of the dataset\'s current stage folders: '
+               f'{sum(r.jobs for r in timings)} jobs, {total:.1f} s of job wall time in all (jobs may have run in '
+               f'parallel); peak RSS is the largest of any one job.</p>')
     if any(r.jobs for r in timings):
-        add(f'<figure class="plot">{_img(plots.timing_figure([r.stage for r in timings], [r.wall_s for r in timings], [r.peak_rss_mb for r in timings]), "time and memory per stage")}</figure>')
+        figure = plots.timing_figure([r.stage for r in timings], [r.wall_s for r in timings],
+                                     [r.peak_rss_mb for r in timings])
+        out.append(f'<figure class="plot">{_img(figure, "time and memory per stage")}</figure>')
+    return out
 
-    # ---- 4. samples
-    add("<h2>4. Estimates drawn over their images</h2>")
+
+def _samples_section(table: pd.DataFrame, panels: list[PosePanel], no_gt: bool) -> list[str]:
+    """Section 4: the chosen estimates drawn over their images (``panels``), framed green
+    (correct) or red, with how they were chosen; a note when the ground truth is private."""
+    out = ["<h2>4. Estimates drawn over their images</h2>"]
     if no_gt:
-        add('<p class="note">This dataset\'s test ground truth is not public, so no estimate can be judged here; '
-            'the results CSV named above is the file for the BOP evaluation server.</p>')
+        out.append('<p class="note">This dataset\'s test ground truth is not public, so no estimate can be judged '
+                   'here; the results CSV named above is the file for the BOP evaluation server.</p>')
     n_correct = int(table["correct"].sum()) if len(table) else 0
-    add(f'<p class="note">{len(panels)} of {len(table)} evaluated estimates ({n_correct} correct), chosen '
-        f'deterministically: objects take turns, alternating correct and wrong ones where both exist. Left: the '
-        f'estimate, <span class="swatch" style="background:#28c83c"></span> green if correct, '
-        f'<span class="swatch" style="background:#e62828"></span> red if not; right: the ground truth '
-        f'<span class="swatch" style="background:#286eff"></span> blue. <b>Correct</b> means: MSSD to the nearest '
-        f'ground-truth instance of the object at most {CORRECT_MSSD_FRAC:g} × its diameter (d). Renders in the '
-        f'image\'s camera, cropped around both silhouettes.</p>')
+    out.append(f'<p class="note">{len(panels)} of {len(table)} evaluated estimates ({n_correct} correct), chosen '
+               f'deterministically: objects take turns, alternating correct and wrong ones where both exist. Left: '
+               f'the estimate, <span class="swatch" style="background:#28c83c"></span> green if correct, '
+               f'<span class="swatch" style="background:#e62828"></span> red if not; right: the ground truth '
+               f'<span class="swatch" style="background:#286eff"></span> blue. <b>Correct</b> means: MSSD to the '
+               f'nearest ground-truth instance of the object at most {CORRECT_MSSD_FRAC:g} × its diameter (d). '
+               f'Renders in the image\'s camera, cropped around both silhouettes.</p>')
     if panels:
-        add('<div class="grid">')
+        out.append('<div class="grid">')
         for p in panels:
             cls = "correct" if p.correct else "wrong"
-            add(f'<figure class="sample {cls}">{_img(p.png, p.caption)}<figcaption>{_e(p.caption)}</figcaption></figure>')
-        add("</div>")
+            out.append(f'<figure class="sample {cls}">{_img(p.png, p.caption)}<figcaption>{_e(p.caption)}'
+                       f'</figcaption></figure>')
+        out.append("</div>")
+    return out
 
-    # ---- 5. hypotheses
-    add("<h2>5. Hypotheses and their verification</h2>")
+
+def _hypotheses_section(plan, hyp_png: bytes | None) -> list[str]:
+    """Section 5: hypotheses per source (chosen, mean score), each modality's signal and
+    fusion weight per object, and the figure of the hypotheses (``hyp_png``, if any)."""
+    out = ["<h2>5. Hypotheses and their verification</h2>"]
     counts, weights = hypothesis_tables(plan)
     if len(counts):
-        add('<p class="note">Every candidate gets several coarse hypotheses (the RANSAC winners of the geometric and '
-            'of the visual matches, the paper\'s equal fusion, and the fusion weighted by each modality\'s signal), '
-            'each refined by ICP and verified against the sensor\'s depth and the candidate\'s mask; the best '
-            'verified one is the candidate\'s pose.</p>')
-        add(_table(["source", "hypotheses", "chosen", "mean score"],
-                   [[_e(r.source), fmt(r.hypotheses), fmt(r.chosen), fmt(r.mean_score)] for r in counts.itertuples()],
-                   cls="hypotheses", keys=["source", "hypotheses", "chosen", "mean_score"]))
+        out.append('<p class="note">Every candidate gets several coarse hypotheses (the RANSAC winners of the '
+                   'geometric and of the visual matches, the paper\'s equal fusion, and the fusion weighted by each '
+                   'modality\'s signal), each refined by ICP and verified against the sensor\'s depth and the '
+                   'candidate\'s mask; the best verified one is the candidate\'s pose.</p>')
+        out.append(_table(["source", "hypotheses", "chosen", "mean score"],
+                          [[_e(r.source), fmt(r.hypotheses), fmt(r.chosen), fmt(r.mean_score)]
+                           for r in counts.itertuples()],
+                          cls="hypotheses", keys=["source", "hypotheses", "chosen", "mean_score"]))
     if len(weights):
-        add("<h3>Signal of each modality, per object</h3>")
-        add('<p class="note">How far each modality\'s matches agree with a pose beyond chance (median z-score over '
-            'the object\'s candidates, on held-out points) and the mean fusion weight it got (0: dropped).</p>')
-        add(_table(["object", "candidates", "geometric signal", "visual signal", "geometric weight", "visual weight"],
-                   [[str(int(r.obj_id)), fmt(r.candidates), fmt(r.signal_geometric, 1), fmt(r.signal_visual, 1),
-                     fmt(r.w_geometric, 2), fmt(r.w_visual, 2)] for r in weights.itertuples()],
-                   cls="modality-signal",
-                   keys=["obj_id", "candidates", "signal_geometric", "signal_visual", "w_geometric", "w_visual"]))
+        out.append("<h3>Signal of each modality, per object</h3>")
+        out.append('<p class="note">How far each modality\'s matches agree with a pose beyond chance (median z-score '
+                   'over the object\'s candidates, on held-out points) and the mean fusion weight it got (0: '
+                   'dropped).</p>')
+        out.append(_table(["object", "candidates", "geometric signal", "visual signal", "geometric weight",
+                           "visual weight"],
+                          [[str(int(r.obj_id)), fmt(r.candidates), fmt(r.signal_geometric, 1),
+                            fmt(r.signal_visual, 1), fmt(r.w_geometric, 2), fmt(r.w_visual, 2)]
+                           for r in weights.itertuples()],
+                          cls="modality-signal",
+                          keys=["obj_id", "candidates", "signal_geometric", "signal_visual", "w_geometric",
+                                "w_visual"]))
     if hyp_png is not None:
-        add(f'<figure class="hypotheses">{_img(hyp_png, "hypotheses")}<figcaption>Candidates whose chosen hypothesis '
-            f'is not the paper\'s fused pose come first. Green: the model\'s depth agrees with the sensor\'s; red: '
-            f'free space (the camera sees behind the model); blue: occluded; grey: no depth; yellow: the mask; the '
-            f'chosen hypothesis is framed in green.</figcaption></figure>')
+        out.append(f'<figure class="hypotheses">{_img(hyp_png, "hypotheses")}<figcaption>Candidates whose chosen '
+                   f'hypothesis is not the paper\'s fused pose come first. Green: the model\'s depth agrees with the '
+                   f'sensor\'s; red: free space (the camera sees behind the model); blue: occluded; grey: no depth; '
+                   f'yellow: the mask; the chosen hypothesis is framed in green.</figcaption></figure>')
+    return out
 
-    # ---- 6. SAR
-    add("<h2>6. Symmetry-aware refinement</h2>")
+
+def _sar_section(sar: list[tuple[int, bytes, int]]) -> list[str]:
+    """Section 6: per object with symmetries beyond the declared ones, the SAR figure
+    (``sar``: :func:`sar_figures`), or a note that SAR ran on no estimate."""
+    out = ["<h2>6. Symmetry-aware refinement</h2>"]
     if sar:
-        add('<p class="note">Per object whose shape has symmetries beyond the declared ones: the scene crop, the ICP '
-            'pose, the pose SAR chose, and the similarity of every symmetric variant (chosen one in green). '
-            'Cases where SAR changed the pose come first.</p>')
+        out.append('<p class="note">Per object whose shape has symmetries beyond the declared ones: the scene crop, '
+                   'the ICP pose, the pose SAR chose, and the similarity of every symmetric variant (chosen one in '
+                   'green). Cases where SAR changed the pose come first.</p>')
         for obj_id, png, n in sar:
-            add(f'<h3>Object {obj_id}</h3><figure class="sar">{_img(png, f"SAR object {obj_id}")}'
-                f'<figcaption>{n} case(s) of object {obj_id}.</figcaption></figure>')
+            out.append(f'<h3>Object {obj_id}</h3><figure class="sar">{_img(png, f"SAR object {obj_id}")}'
+                       f'<figcaption>{n} case(s) of object {obj_id}.</figcaption></figure>')
     else:
-        add('<p class="note">SAR ran on no estimate of this dataset (no object with a symmetry beyond the declared '
-            'ones, or SAR switched off).</p>')
-
-    # ---- footer
-    add("<h2>Run manifest</h2>")
-    add(f"<details><summary>resolved run manifest (JSON)</summary><pre>{_e(json.dumps(rp.run.model_dump(), indent=2))}"
-        f"</pre></details>")
-    add(f'<p class="small">Page built in {time.perf_counter() - t0:.1f} s by <code>pipeline.views.html</code>.</p>')
-    body = "\n".join(parts)
-    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
-            f'<meta name="viewport" content="width=device-width, initial-scale=1">\n'
-            f"<title>FreeZe report: {_e(dataset)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
+        out.append('<p class="note">SAR ran on no estimate of this dataset (no object with a symmetry beyond the '
+                   'declared ones, or SAR switched off).</p>')
+    return out
 
 
 def write_report(rp, dataset: str, out: Path, samples: int = 12, run_label: str | None = None) -> Path:

@@ -71,7 +71,7 @@ def hypothesis_cases(plan, limit: int = 6, scene_id: int | None = None, cand_id:
     the others; or the one candidate ``cand_id`` (with ``scene_id``)."""
     import pandas as pd
 
-    from pipeline.formats.bop.detections import rle_decode
+    from pipeline.formats.bop.detections import prior_row_mask
     from pipeline.method.refinement.verification import verification_window
     from pipeline.method.render import Renderer
     from pipeline.common.store import read_table
@@ -116,7 +116,7 @@ def hypothesis_cases(plan, limit: int = 6, scene_id: int | None = None, cand_id:
             if not renderer.has_mesh(o):
                 renderer.add_mesh(o, bop.load_model(o))
             b = boxes.loc[(s, c)]
-            mask = rle_decode({"counts": list(b.rle_counts), "size": [int(b.height), int(b.width)]})
+            mask = prior_row_mask(b)
             x0, y0, w, h = verification_window((b.bbox_x, b.bbox_y, b.bbox_w, b.bbox_h), depth.shape, rp.verify_margin)
             tol = max(rp.verify_min_tol_mm, rp.verify_tol_frac * infos[o].diameter)
             panels = []

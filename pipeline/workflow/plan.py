@@ -1,8 +1,11 @@
 """The run plan: every stage's key, signature and artifact paths, known before running.
 
-Snakemake calls :func:`plan_run` at DAG time to compute its output paths; the stage
-entry points call it again to find their inputs and outputs, and check that they agree
-with the path Snakemake asked for. Nothing here touches the artifacts themselves.
+The ``Snakefile`` builds a :class:`RunPlan` at DAG time to compute its output paths; the
+stage jobs build it again (:func:`plan_from_json`, from the run manifest Snakemake passes
+them) to find their inputs and outputs, and check that their signature is the one
+Snakemake asked for. Each stage's signature label and keyed parameters come from its
+declaration (:class:`pipeline.workflow.stage_graph.StageSpec`). Nothing here touches the
+artifacts themselves.
 
 Item names: ``obj_000001`` (model side), ``scene_000001`` (scene side), ``all``
 (dataset-wide artifacts), ``dataset`` (the synthetic dataset itself).
@@ -10,9 +13,9 @@ Item names: ``obj_000001`` (model side), ``scene_000001`` (scene side), ``all``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
-import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -21,17 +24,11 @@ from typing import Any, Iterator
 
 from pipeline.common import config as cfg
 from pipeline.workflow import stage_graph
-from pipeline.workflow.stage_graph import EXTERNAL, UndeclaredRead, item_kind, upstream_items
-from pipeline.formats.bop.detections import detector_name
+from pipeline.workflow.stage_graph import EXTERNAL, PlanContext, UndeclaredRead, item_kind, upstream_items
 from pipeline.common.store import MANIFEST_NAME, ensure_sound, file_sha1, make_key, make_signature
 
 STAGES = tuple(stage_graph.STAGES)
 """Stage names in graph order (declared in :mod:`pipeline.workflow.stage_graph`)."""
-
-LEGACY_KEY_SPELLING = {("refine", "select_by"): {"evidence": "score"}}
-"""Parameter values renamed after caches existed, hashed (and shown in signatures) under
-their old spelling so that the rename keeps every key: ``select_by: evidence`` was
-``select_by: score``."""
 
 
 def cache_root() -> Path:
@@ -447,54 +444,10 @@ def open_bop(root: Path, ds: cfg.DatasetManifest):
     return BopDataset(root, split=ds.split, split_type=ds.split_type, models_dir=ds.models, camera_file=ds.camera_file)
 
 
-def prior_label(paths: list[Path]) -> str:
-    """Readable name of the prior files for a signature: their detector names, reduced to
-    the characters signatures allow, joined by '+'."""
-    return "+".join(re.sub(r"[^A-Za-z0-9.-]", "", detector_name(p)) or "prior" for p in paths)
-
-
 def missing_ground_truth(bop, scene_ids) -> list[Path]:
     """The ``scene_gt.json`` files of ``scene_ids`` that the dataset (a
     :class:`pipeline.formats.bop.BopDataset`) lacks: private test ground truth (ITODD, HB)."""
     return [bop.scene_dir(s) / "scene_gt.json" for s in scene_ids if not (bop.scene_dir(s) / "scene_gt.json").is_file()]
-
-
-# Parameters added after caches existed enter a key only when they change the output,
-# so that runs made before them keep their artifacts.
-
-def _grey(ds: cfg.DatasetManifest) -> dict[str, str]:
-    """``{"image_mode": "gray"}`` for grey datasets, nothing for colour ones."""
-    return {"image_mode": "gray"} if ds.image_mode == "gray" else {}
-
-
-def _look_at(ds: cfg.DatasetManifest) -> dict[str, str]:
-    """render_templates looks at each model's bounding-box centre. The synthetic objects
-    are centred on it by construction (tests/test_synth.py checks it), so their
-    templates are those made before this rule, under the same key; on a BOP dataset a
-    model off its origin gets other templates, hence the parameter in its key."""
-    return {"look_at": "bbox_centre"} if ds.kind == "bop" else {}
-
-
-def _prior_params(patterns: list[str], p: cfg.SegmentPriorParams) -> dict[str, Any]:
-    """segment_prior's keyed parameters: the prior pattern(s), the selection, and the
-    merge threshold and category-id mode only where they act."""
-    out = {"prior": patterns[0] if len(patterns) == 1 else patterns,
-           **p.model_dump(exclude={"merge_iou", "category_ids"})}
-    if len(patterns) > 1:
-        out["merge_iou"] = p.merge_iou
-    if p.category_ids != "obj_id":
-        out["category_ids"] = p.category_ids
-    return out
-
-
-def _legacy_spelling(stage: str, params: dict[str, Any]) -> dict[str, Any]:
-    """``params`` with renamed values put back in the spelling keys were made with
-    (:data:`LEGACY_KEY_SPELLING`)."""
-    out = dict(params)
-    for (s, field_name), table in LEGACY_KEY_SPELLING.items():
-        if s == stage and field_name in out:
-            out[field_name] = table.get(out[field_name], out[field_name])
-    return out
 
 
 def _bop_layout(root: Path, ds: cfg.DatasetManifest, cache: Path) -> tuple[list[int], list[int], str, str, bool]:
@@ -616,22 +569,24 @@ class RunPlan:
         return StagePlan(ds, stage, key, sig, params, upstream, spec.code_version, self.cache / ds / stage / sig)
 
     def _plan_dataset(self, name: str) -> DatasetPlan:
+        """Every stage's plan, in declaration order, its label and parameters from its
+        declaration (:class:`pipeline.workflow.stage_graph.StageSpec`); the dataset's
+        layout and keys from the synth stage (a synthetic or semi-real dataset) or from
+        the files on disk (a BOP dataset)."""
         ds = self.manifest(name)
         run = self.run
-        sp = run.stages
+        ctx = PlanContext(run=run, dataset=ds, encoder_entries=lambda: self.encoders)
         stages: dict[str, StagePlan] = {}
-        score_extra: dict[str, Any] = {}
         if ds.kind in ("synthetic", "semireal"):
+            spec = stage_graph.spec("synth")
             if ds.kind == "synthetic":
-                synth = self._stage(name, "synth", f"{ds.preset}-seed{ds.seed}", {"preset": ds.preset, "seed": ds.seed}, {})
+                source_key = {}
                 obj_ids, scene_images = _synthetic_layout(ds)
             else:
                 source = cfg.shared_root() / ds.source
-                synth = self._stage(name, "synth", f"semireal-{ds.depth}-{ds.gt_prior}-seed{ds.seed}",
-                                    {"builder": "semireal", "source": ds.source, "depth": ds.depth,
-                                     "gt_prior": ds.gt_prior, "seed": ds.seed},
-                                    {"source": _tree_sha1(source)})
+                source_key = {"source": _tree_sha1(source)}
                 obj_ids, scene_images = _semireal_layout(source)
+            synth = self._stage(name, "synth", spec.plan_label(ctx), spec.plan_params(ctx), source_key)
             stages["synth"] = synth
             root = synth.item_dir("dataset") / name
             dataset_key = models_key = prior_key = synth.key
@@ -640,42 +595,18 @@ class RunPlan:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")
             root = Path(run.bop_root).resolve() / (ds.folder or ds.name)
             obj_ids, scene_images, dataset_key, models_key, has_gt = _bop_layout(root, ds, self.cache)
-            if not has_gt:  # score cannot compute AR; ground truth added later must rescore
-                score_extra = {"ground_truth": False}
+            ctx = dataclasses.replace(ctx, ground_truth=has_gt)
             prior_files = [resolve_prior(Path(run.bop_root), p) for p in ds.prior_patterns(run.priors)]
             for prior_file in prior_files:
                 if not prior_file.exists():
                     raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
             prior_key = "+".join(file_sha1(f) for f in prior_files)
         keys = {"dataset": dataset_key, "models": models_key, "prior": prior_key}
-
-        def add(stage: str, readable: str, params: dict) -> None:
-            stages[stage] = self._stage(name, stage, readable, params, keys)
+        for stage, spec in stage_graph.STAGES.items():
+            if stage in stages or spec.synthetic_only:
+                continue
+            stages[stage] = self._stage(name, stage, spec.plan_label(ctx), spec.plan_params(ctx), keys)
             keys[stage] = stages[stage].key
-
-        ds_params = {"dataset": name, "split": ds.split, "split_type": ds.split_type}
-        enc = self.encoders
-        geo, vis = enc["geometric"], enc["visual"]
-        enc_params = {"geometric": {k: geo[k] for k in ("encoder", "version", "params")},
-                      "visual": {k: vis[k] for k in ("encoder", "version", "params")}}
-        enc_name = f"{geo['signature']}+{vis['signature']}"
-
-        rt = sp.render_templates
-        add("render_templates", f"r{rt.n_views}-s{rt.image_size}",
-            {**ds_params, **rt.model_dump(), **_grey(ds), **_look_at(ds)})
-        sym = sp.symmetries
-        add("symmetries", f"so3-n{sym.n_points}", {**ds_params, **sym.model_dump()})
-        add("model_features", enc_name, {**sp.model_features.model_dump(), "encoders": enc_params})
-        patterns = ds.prior_patterns(run.priors)
-        add("segment_prior", f"{prior_label([Path(p) for p in patterns])}-top{sp.segment_prior.top_k}",
-            {**ds_params, **_prior_params(patterns, sp.segment_prior), "targets_file": ds.targets_file})
-        add("scene_features", enc_name, {**sp.scene_features.model_dump(), "encoders": enc_params})
-        add("register", f"{enc_name}-ransac", sp.register.model_dump())
-        rf = _legacy_spelling("refine", sp.refine.model_dump())
-        refine_name = "+".join(["icp" if rf["icp"] else "coarse"] + (["sar"] if rf["sar"] else [])) + f"-by{rf['select_by']}"
-        add("refine", refine_name, {"method": run.method, **rf, **_grey(ds)})
-        add("score", "bop19", {"vsd_delta": ds.vsd_delta, "targets_file": ds.targets_file, **sp.score.model_dump(),
-                               **score_extra})
         return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_images=scene_images, stages=stages,
                            dataset_key=dataset_key, models_key=models_key, prior_key=prior_key)
 

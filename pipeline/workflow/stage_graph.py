@@ -10,7 +10,19 @@ else is derived from these declarations:
 - what a running stage may open (:class:`pipeline.workflow.plan.StageIO` refuses an undeclared
   upstream; ``tests/test_stage_graph.py`` runs every stage under an audit hook and
   fails on any file it opens outside its declared reads);
-- the files a stage may publish (checked by ``StageIO.publish``).
+- the files a stage may publish (checked by ``StageIO.publish``);
+- each stage's readable signature label and keyed parameters (:attr:`StageSpec.label`,
+  :attr:`StageSpec.params`, computed from a :class:`PlanContext` by
+  :meth:`pipeline.workflow.plan.RunPlan._plan_dataset`, which loops over the declarations);
+- the Snakemake rules (:func:`stage_rules`: the ``Snakefile`` defines one rule per stage
+  and item kind in a loop);
+- the model- and scene-side stage lists of ``freeze estimate`` (:func:`stages_of_side`)
+  and the stages whose per-image times the results CSV sums (:func:`stages_writing`);
+- the stage table of ``docs/architecture.md`` (:mod:`pipeline.workflow.stage_docs`,
+  rewritten by ``scripts/update_docs.py``, checked by ``tests/test_stage_docs.py``).
+
+Adding a stage touches its module (``stages/<name>.py``), its declaration here (and its
+parameters' model in :mod:`pipeline.common.config`, if it has any), and its tests.
 
 Reads name upstream stages or the external inputs: ``dataset`` (the BOP dataset's own
 files: models, images, camera, ground truth, targets), ``prior`` (the localisation prior
@@ -49,9 +61,16 @@ the key, so the stage and everything downstream are rebuilt.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable, Literal, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal, Mapping, NamedTuple
+
+from pipeline.common import config as cfg
+
+if TYPE_CHECKING:
+    from pipeline.common.config import DatasetManifest, RunManifest
 
 ItemKind = Literal["dataset", "obj", "scene", "all"]
+Side = Literal["model", "scene", "evaluation", "dataset"]
 EXTERNAL = ("dataset", "prior", "source")
 """Inputs that are not stages: the dataset's files, the localisation prior's, and the real
 sample a semi-real dataset is built from."""
@@ -59,6 +78,69 @@ sample a semi-real dataset is built from."""
 
 class UndeclaredRead(RuntimeError):
     """A stage asked for an input its declaration does not list."""
+
+
+LEGACY_KEY_SPELLING = {where: {new: old for old, new in names.items()} for where, names in cfg.RENAMED_VALUES.items()}
+"""Parameter values renamed after caches existed, hashed (and shown in signatures) under
+their old spelling so that the rename keeps every key: ``select_by: evidence`` was
+``select_by: score`` (the run manifest accepts the old spelling too:
+:data:`pipeline.common.config.RENAMED_VALUES`, the one statement of the renames)."""
+
+
+def legacy_spelling(stage: str, params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` with renamed values put back in the spelling keys were made with
+    (:data:`LEGACY_KEY_SPELLING`)."""
+    out = dict(params)
+    for (s, field_name), table in LEGACY_KEY_SPELLING.items():
+        if s == stage and field_name in out:
+            out[field_name] = table.get(out[field_name], out[field_name])
+    return out
+
+
+@dataclass(frozen=True)
+class PlanContext:
+    """What the stages' labels and keyed parameters are computed from: one dataset under
+    one run (built by :meth:`pipeline.workflow.plan.RunPlan._plan_dataset`).
+
+    ``encoder_entries`` returns :attr:`pipeline.workflow.plan.RunPlan.encoders` (called
+    only by the stages that need the encoders, so that the synth stage is planned
+    before they are built)."""
+
+    run: "RunManifest"
+    dataset: "DatasetManifest"
+    encoder_entries: Callable[[], Mapping[str, Mapping[str, Any]]]
+    ground_truth: bool = True
+    """Whether every target scene has ground truth (a BOP dataset on disk may lack it)."""
+
+    def stage_params(self, stage: str) -> dict[str, Any]:
+        """The run manifest's parameters of ``stage``, in the spelling keys were made with."""
+        return legacy_spelling(stage, getattr(self.run.stages, stage).model_dump())
+
+    def has_stage_params(self, stage: str) -> bool:
+        return stage in type(self.run.stages).model_fields
+
+    @property
+    def dataset_params(self) -> dict[str, Any]:
+        """The dataset's name, split and split type (keyed by the stages that read it by name)."""
+        ds = self.dataset
+        return {"dataset": ds.name, "split": ds.split, "split_type": ds.split_type}
+
+    @property
+    def encoder_params(self) -> dict[str, dict[str, Any]]:
+        """The keyed part of each encoder: registry name, version and output-relevant parameters."""
+        enc = self.encoder_entries()
+        return {kind: {k: enc[kind][k] for k in ("encoder", "version", "params")} for kind in ("geometric", "visual")}
+
+    @property
+    def encoder_label(self) -> str:
+        """``<geometric signature>+<visual signature>``, e.g. ``fpfh-ms+colortex``."""
+        enc = self.encoder_entries()
+        return f"{enc['geometric']['signature']}+{enc['visual']['signature']}"
+
+    @property
+    def prior_patterns(self) -> list[str]:
+        """The dataset's localisation prior file pattern(s) under the run's ``priors``."""
+        return self.dataset.prior_patterns(self.run.priors)
 
 
 @dataclass(frozen=True)
@@ -69,8 +151,22 @@ class StageSpec:
     read, and the file names written into the item folder (``{results_csv}`` stands
     for ``<method>_<dataset>-<split>.csv``, ``{dataset}`` for the dataset's name).
     side: ``model`` for the per-object onboarding stages, whose ``dataset`` key may be
-    the models' own fingerprint (:attr:`pipeline.workflow.plan.DatasetPlan.models_key`).
-    algorithm: where the stage's method lives, one import away from the stage module.
+    the models' own fingerprint (:attr:`pipeline.workflow.plan.DatasetPlan.models_key`);
+    ``scene`` for the stages that estimate poses in the images (``freeze estimate`` runs
+    the model and scene sides, :func:`stages_of_side`), ``evaluation`` for scoring and
+    ``dataset`` for building the dataset.
+    algorithm: where the stage's method lives, one import away from the stage module
+    (for its first item kind). more_algorithms: per item kind, further library functions
+    its jobs call: for the first kind those called after ``algorithm``, for a later kind
+    that kind's own, its main one first; a ``(role, function)`` pair is one called for a
+    part of the work (``("times per image", ...)``). The docs' stage table shows them
+    (:meth:`algorithms_for` gives the functions alone).
+    notes: per item kind, a few words on what its job does, for the docs' stage table.
+    label, params: the readable part of the stage's signature and its keyed parameters,
+    each a function of the :class:`PlanContext` (default: the stage's name, and its
+    parameters in the run manifest, if it has any). Parameters added after caches
+    existed enter them only when they change the output, so that runs made before keep
+    their artifacts.
     threads, mem_mb, runtime_min: what one job needs, the Snakemake rule's ``threads``
     and ``resources: mem_mb, runtime`` (a cluster profile may raise them per rule). The
     memory is about twice the peak measured with the default encoders on the benchmarks
@@ -87,13 +183,17 @@ class StageSpec:
     writes: Mapping[str, tuple[str, ...]]
     keyed_by: tuple[str, ...]
     algorithm: str
-    side: Literal["model", "scene", "dataset"] = "scene"
+    side: Side = "scene"
     synthetic_only: bool = False
     summary: str = ""
     module: str = field(default="")
     threads: int = 1
     mem_mb: int = 1500
     runtime_min: int = 60
+    label: Callable[[PlanContext], str] | None = None
+    params: Callable[[PlanContext], dict[str, Any]] | None = None
+    more_algorithms: Mapping[str, tuple[str | tuple[str, str], ...]] = field(default_factory=dict)
+    notes: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.module:
@@ -117,47 +217,171 @@ class StageSpec:
         """The item kind of the stage's main jobs (the first declared)."""
         return self.items[0]
 
+    def algorithms_for(self, kind: str) -> tuple[str, ...]:
+        """The library functions the stage's job for an item of ``kind`` calls, its
+        algorithm first (dotted names)."""
+        more = tuple(a if isinstance(a, str) else a[1] for a in self.more_algorithms.get(kind, ()))
+        return (self.algorithm, *more) if kind == self.items[0] else more
+
+    def plan_label(self, ctx: PlanContext) -> str:
+        """The readable part of the stage's signature for ``ctx``."""
+        return self.label(ctx) if self.label is not None else self.name
+
+    def plan_params(self, ctx: PlanContext) -> dict[str, Any]:
+        """The stage's keyed parameters for ``ctx``."""
+        if self.params is not None:
+            return self.params(ctx)
+        return ctx.stage_params(self.name) if ctx.has_stage_params(self.name) else {}
+
+
+# ------------------------------------------------------ labels and keyed parameters
+# One function per stage and signature part, named in its declaration below. A value
+# that changes here changes the stage's key, so its artifacts and everything after them
+# are rebuilt: tests/test_plan.py pins the main job's keys.
+
+def _grey(c: PlanContext) -> dict[str, str]:
+    """``{"image_mode": "gray"}`` for grey datasets, nothing for colour ones."""
+    return {"image_mode": "gray"} if c.dataset.image_mode == "gray" else {}
+
+
+def _look_at(c: PlanContext) -> dict[str, str]:
+    """render_templates looks at each model's bounding-box centre. The synthetic objects
+    are centred on it by construction (tests/test_synth.py checks it), so their
+    templates are those made before this rule, under the same key; on a BOP dataset a
+    model off its origin gets other templates, hence the parameter in its key."""
+    return {"look_at": "bbox_centre"} if c.dataset.kind == "bop" else {}
+
+
+def prior_label(paths: list[Path]) -> str:
+    """Readable name of the prior files for a signature: their detector names, reduced to
+    the characters signatures allow, joined by '+'."""
+    import re
+
+    from pipeline.formats.bop.detections import detector_name
+
+    return "+".join(re.sub(r"[^A-Za-z0-9.-]", "", detector_name(p)) or "prior" for p in paths)
+
+
+def _synth_label(c: PlanContext) -> str:
+    ds = c.dataset
+    if ds.kind == "semireal":
+        return f"semireal-{ds.depth}-{ds.gt_prior}-seed{ds.seed}"
+    return f"{ds.preset}-seed{ds.seed}"
+
+
+def _synth_params(c: PlanContext) -> dict[str, Any]:
+    ds = c.dataset
+    if ds.kind == "semireal":
+        return {"builder": "semireal", "source": ds.source, "depth": ds.depth, "gt_prior": ds.gt_prior, "seed": ds.seed}
+    return {"preset": ds.preset, "seed": ds.seed}
+
+
+def _render_templates_label(c: PlanContext) -> str:
+    p = c.stage_params("render_templates")
+    return f"r{p['n_views']}-s{p['image_size']}"
+
+
+def _render_templates_params(c: PlanContext) -> dict[str, Any]:
+    return {**c.dataset_params, **c.stage_params("render_templates"), **_grey(c), **_look_at(c)}
+
+
+def _symmetries_label(c: PlanContext) -> str:
+    return f"so3-n{c.stage_params('symmetries')['n_points']}"
+
+
+def _symmetries_params(c: PlanContext) -> dict[str, Any]:
+    return {**c.dataset_params, **c.stage_params("symmetries")}
+
+
+def _encoders_label(c: PlanContext) -> str:
+    return c.encoder_label
+
+
+def _model_features_params(c: PlanContext) -> dict[str, Any]:
+    return {**c.stage_params("model_features"), "encoders": c.encoder_params}
+
+
+def _segment_prior_label(c: PlanContext) -> str:
+    return f"{prior_label([Path(p) for p in c.prior_patterns])}-top{c.stage_params('segment_prior')['top_k']}"
+
+
+def _segment_prior_params(c: PlanContext) -> dict[str, Any]:
+    """The prior pattern(s), the selection, and the merge threshold and category-id mode
+    only where they act."""
+    patterns = c.prior_patterns
+    p = c.stage_params("segment_prior")
+    out = {"prior": patterns[0] if len(patterns) == 1 else patterns,
+           **{k: v for k, v in p.items() if k not in ("merge_iou", "category_ids")}}
+    if len(patterns) > 1:
+        out["merge_iou"] = p["merge_iou"]
+    if p["category_ids"] != "obj_id":
+        out["category_ids"] = p["category_ids"]
+    return {**c.dataset_params, **out, "targets_file": c.dataset.targets_file}
+
+
+def _scene_features_params(c: PlanContext) -> dict[str, Any]:
+    return {**c.stage_params("scene_features"), "encoders": c.encoder_params}
+
+
+def _register_label(c: PlanContext) -> str:
+    return f"{c.encoder_label}-ransac"
+
+
+def _refine_label(c: PlanContext) -> str:
+    rf = c.stage_params("refine")
+    return "+".join(["icp" if rf["icp"] else "coarse"] + (["sar"] if rf["sar"] else [])) + f"-by{rf['select_by']}"
+
+
+def _refine_params(c: PlanContext) -> dict[str, Any]:
+    return {"method": c.run.method, **c.stage_params("refine"), **_grey(c)}
+
+
+def _score_params(c: PlanContext) -> dict[str, Any]:
+    # without ground truth score computes no AR; ground truth added later must rescore
+    return {"vsd_delta": c.dataset.vsd_delta, "targets_file": c.dataset.targets_file, **c.stage_params("score"),
+            **({} if c.ground_truth else {"ground_truth": False})}
+
 
 _SPECS = (
     StageSpec(
         "synth", 1, ("dataset",), reads={"dataset": ("source",)}, writes={"dataset": ("{dataset}",)},
         keyed_by=("source",), algorithm="pipeline.evaluation.synth.build_dataset", side="dataset", synthetic_only=True,
         summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)",
-        threads=1, mem_mb=2000, runtime_min=30),
+        threads=1, mem_mb=2000, runtime_min=30, label=_synth_label, params=_synth_params),
     StageSpec(
         "render_templates", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("templates.zarr",)},
         keyed_by=("dataset",), algorithm="pipeline.method.render.templates.render_object_templates", side="model",
         summary="R object-centred template views of one object",
-        threads=1, mem_mb=1500, runtime_min=60),
+        threads=1, mem_mb=1500, runtime_min=60, label=_render_templates_label, params=_render_templates_params),
     StageSpec(
         "symmetries", 2, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("symmetries.json",)},
         keyed_by=("dataset",), algorithm="pipeline.method.model_side.symmetry_record", side="model",
         summary="the shape symmetries of one object",
-        threads=1, mem_mb=1000, runtime_min=30),
+        threads=1, mem_mb=1000, runtime_min=30, label=_symmetries_label, params=_symmetries_params),
     StageSpec(
         "model_features", 1, ("obj",), reads={"obj": ("render_templates", "dataset")},
         writes={"obj": ("features.zarr",)}, keyed_by=("render_templates",),
         algorithm="pipeline.method.model_side.model_features", side="model",
         summary="geometric and lifted visual features of one object's sampled points",
-        threads=2, mem_mb=4000, runtime_min=120),
+        threads=2, mem_mb=4000, runtime_min=120, label=_encoders_label, params=_model_features_params),
     StageSpec(
         "segment_prior", 3, ("all",), reads={"all": ("dataset", "prior")}, writes={"all": ("candidates.parquet",)},
         keyed_by=("dataset", "prior"), algorithm="pipeline.method.segmentation.candidates_from_priors",
         summary="candidate masks of every target from the localisation prior(s)",
-        threads=1, mem_mb=1000, runtime_min=30),
+        threads=1, mem_mb=1000, runtime_min=30, label=_segment_prior_label, params=_segment_prior_params),
     StageSpec(
         "scene_features", 1, ("scene",), reads={"scene": ("segment_prior", "dataset")},
         writes={"scene": ("features.zarr", "candidates.parquet", "images.parquet")},
-        keyed_by=("segment_prior", "dataset"), algorithm="pipeline.method.scene_side.scene_features",
+        keyed_by=("segment_prior", "dataset"), algorithm="pipeline.method.estimator.Estimator.scene_features",
         summary="lifted points and features of every candidate of one scene",
-        threads=2, mem_mb=4000, runtime_min=240),
+        threads=2, mem_mb=4000, runtime_min=240, label=_encoders_label, params=_scene_features_params),
     StageSpec(
         "register", 5, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
         writes={"scene": ("candidates.parquet", "images.parquet", "pca.zarr")},
-        keyed_by=("model_features", "scene_features"), algorithm="pipeline.method.scene_side.register_candidates",
+        keyed_by=("model_features", "scene_features"), algorithm="pipeline.method.estimator.Estimator.register",
         summary="coarse pose hypotheses of every candidate of one scene (RANSAC on weighted fused features and on "
                 "each modality's own)",
-        threads=1, mem_mb=1500, runtime_min=240),
+        threads=1, mem_mb=1500, runtime_min=240, label=_register_label),
     StageSpec(
         "refine", 8, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
@@ -165,15 +389,19 @@ _SPECS = (
         writes={"scene": ("candidates.parquet", "hypotheses.parquet", "poses.parquet", "sar.parquet",
                           "images.parquet"),
                 "all": ("{results_csv}",)},
-        keyed_by=("register", "symmetries"), algorithm="pipeline.method.scene_side.refine_candidates",
+        keyed_by=("register", "symmetries"), algorithm="pipeline.method.estimator.Estimator.refine",
+        more_algorithms={"scene": ("pipeline.method.estimator.Estimator.refine_by_symmetry",),
+                         "all": ("pipeline.formats.bop.results.write_results_csv",
+                                 ("times per image", "pipeline.formats.bop.results.image_times"))},
+        notes={"all": "gathers every scene's estimates"},
         summary="ICP and verification of every hypothesis, the estimates chosen per target, SAR; item 'all': the BOP "
                 "results CSV",
-        threads=1, mem_mb=2000, runtime_min=240),
+        threads=1, mem_mb=2000, runtime_min=240, label=_refine_label, params=_refine_params),
     StageSpec(
         "score", 2, ("all",), reads={"all": ("refine", "dataset")}, writes={"all": ("errors.parquet", "scores.json")},
         keyed_by=("refine", "dataset"), algorithm="pipeline.evaluation.metrics.score_results_file",
-        summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV",
-        threads=1, mem_mb=2000, runtime_min=120),
+        side="evaluation", summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV",
+        threads=1, mem_mb=2000, runtime_min=120, label=lambda c: "bop19", params=_score_params),
 )
 
 STAGES: dict[str, StageSpec] = {s.name: s for s in _SPECS}
@@ -188,6 +416,47 @@ def spec(stage: str) -> StageSpec:
 
 def code_version(stage: str) -> int:
     return spec(stage).code_version
+
+
+def stages_of_side(side: Side) -> tuple[str, ...]:
+    """The stages of one side, in declaration order: ``model`` (render_templates,
+    symmetries, model_features), ``scene`` (segment_prior, scene_features, register,
+    refine), ``evaluation`` (score), ``dataset`` (synth)."""
+    return tuple(name for name, s in STAGES.items() if s.side == side)
+
+
+def stages_writing(file_name: str, kind: str) -> tuple[str, ...]:
+    """The stages whose items of ``kind`` hold ``file_name``, in declaration order:
+    ``stages_writing("images.parquet", "scene")`` are those that record their time per
+    image (scene_features, register, refine), which the results CSV sums."""
+    return tuple(name for name, s in STAGES.items() if kind in s.items and file_name in s.writes_for(kind))
+
+
+class StageRule(NamedTuple):
+    """One Snakemake rule: the jobs of ``stage`` for its items of ``kind``."""
+
+    name: str
+    stage: str
+    kind: str
+
+
+def rule_name(stage: str | StageSpec, kind: str) -> str:
+    """The Snakemake rule running ``stage`` for items of ``kind``: the stage's name for
+    its first item kind, ``<stage>_collect`` for a later ``all`` (``refine_collect``),
+    ``<stage>_<kind>`` otherwise."""
+    s = spec(stage) if isinstance(stage, str) else stage
+    if kind not in s.items:
+        raise ValueError(f"stage {s.name} has no '{kind}' items (its items: {', '.join(s.items)})")
+    if kind == s.items[0]:
+        return s.name
+    return f"{s.name}_collect" if kind == "all" else f"{s.name}_{kind}"
+
+
+def stage_rules(specs: Mapping[str, StageSpec] | None = None) -> tuple[StageRule, ...]:
+    """Every stage rule of the ``Snakefile``, one per stage and item kind, in declaration
+    order (the cluster profiles may name them in ``set-resources``)."""
+    specs = STAGES if specs is None else specs
+    return tuple(StageRule(rule_name(s, kind), name, kind) for name, s in specs.items() for kind in s.items)
 
 
 def item_kind(item: str) -> str:

@@ -27,9 +27,10 @@ import numpy as np
 import typer
 
 from pipeline.commands.estimate.inputs import EstimateError
+from pipeline.workflow.stage_graph import STAGES, stages_of_side
 
-MODEL_STAGES = ("render_templates", "symmetries", "model_features")
-SCENE_STAGES = ("segment_prior", "scene_features", "register", "refine")
+MODEL_STAGES = stages_of_side("model")
+SCENE_STAGES = stages_of_side("scene")
 ESTIMATE_CACHE = "_estimate"
 """Folder under the cache root holding the artifacts of ``freeze estimate`` (per frame name)."""
 FLAG_KEYS = {"geometric": ("geometric", "geometric_encoder"), "visual": ("visual", "visual_encoder"),
@@ -82,10 +83,9 @@ def frame_run_plan(run, frame, cache: Path | None = None):
     return RunPlan(frame_run, cache=Path(cache or cache_root()) / ESTIMATE_CACHE)
 
 
-def frame_plan(run, frame, cache: Path | None = None):
-    """The :class:`pipeline.workflow.plan.DatasetPlan` of a wrapped frame under ``run``, its
-    artifacts under ``<cache root>/_estimate/``."""
-    return frame_run_plan(run, frame, cache)[frame.root.name]
+def _item(stage: str, scene: str) -> str:
+    """The frame's item of a scene-side stage: ``all`` for a dataset-wide one (segment_prior)."""
+    return "all" if STAGES[stage].items[0] == "all" else scene
 
 
 def run_stages(plan, stages_items: Sequence[tuple[str, str]], steps) -> dict[str, bool]:
@@ -250,7 +250,7 @@ def estimate(
             steps.warn(note)
         obj, scene = frame.obj_item(), frame.scene_item()
         reused = run_stages(plan, [(s, obj) for s in MODEL_STAGES], steps)
-        run_stages(plan, [(s, "all" if s == "segment_prior" else scene) for s in SCENE_STAGES], steps)
+        run_stages(plan, [(s, _item(s, scene)) for s in SCENE_STAGES], steps)
         try:
             res = _finish(plan, frame, work if out_dir is not None else None, run=run, mesh=mesh, diameter=diameter,
                            rgb=rgb_im, K=cam.K, box=box, steps=steps, model_cache_reused=all(reused.values()),
@@ -316,7 +316,7 @@ def _finish(plan, frame, out: Path | None, *, run, mesh, diameter: float, rgb: n
     R, t = rec.pop("R"), rec.pop("t")
     scene, obj = frame.scene_item(), frame.obj_item()
     artifacts = {s: plan[s].item_dir(obj) for s in MODEL_STAGES}
-    artifacts.update({s: plan[s].item_dir("all" if s == "segment_prior" else scene) for s in SCENE_STAGES})
+    artifacts.update({s: plan[s].item_dir(_item(s, scene)) for s in SCENE_STAGES})
     record: dict[str, Any] = {
         "R": R.tolist(), "t": t.tolist(), "evidence": rec.pop("evidence"),
         "cam_R_m2c": R.reshape(-1).tolist(), "cam_t_m2c": t.tolist(),
@@ -389,11 +389,11 @@ def _write_outputs(out: Path, files: dict[str, Path], plan, frame, artifacts: di
 
 def plan_prior_mask(plan, frame) -> np.ndarray:
     """(H, W) bool: the mask of the frame's prior, as segment_prior stored it."""
-    from pipeline.formats.bop.detections import rle_decode
+    from pipeline.formats.bop.detections import prior_row_mask
     from pipeline.common.store import read_table
 
     c = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet").iloc[0]
-    return rle_decode({"counts": list(c.rle_counts), "size": [int(c.height), int(c.width)]})
+    return prior_row_mask(c)
 
 
 class Device(str, Enum):

@@ -6,8 +6,7 @@ stages, and ``snakemake bop_all``, take it like any BOP dataset::
 
     snakemake --cores 2 bop_all --config bop_root=OUT/bop datasets=OUT/bop/NAME.yaml
 
-The manifest asks for content fingerprints (``fingerprint: content``): the scene-side
-keys hash every byte of the frame, so a new image is never answered from the cache,
+The scene-side keys hash every byte of the frame (as for every dataset), so a new image is never answered from the cache,
 while the model-side keys hash only the model's files, so the model side (templates,
 symmetries, features) is reused for every frame of the same model.
 """
@@ -60,7 +59,6 @@ def dataset_manifest(name: str, width: int, height: int, image_mode: str = "rgb"
         "obj_ids": [OBJ_ID],
         "image_size": [int(width), int(height)],
         **({"image_dir": "gray"} if image_mode == "gray" else {}),
-        "fingerprint": "content",
     }
 
 

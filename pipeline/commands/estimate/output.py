@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
+from pipeline.workflow.stage_graph import stages_of_side
+
 from .inputs import EstimateError
 
 MARKER = ".freeze-estimate.json"
@@ -39,8 +41,7 @@ MARKER = ".freeze-estimate.json"
 TEMP_PREFIX = ".freeze-estimate-"
 """Prefix of the estimate's own temporary folders in ``--out`` (staging, replaced outputs):
 leftovers of an interrupted run, removed by the next."""
-OUTPUT_NAMES = ("pose.json", "overlay.png", "points.png", "render_templates", "symmetries", "model_features",
-                "segment_prior", "scene_features", "register", "refine", "bop")
+OUTPUT_NAMES = ("pose.json", "overlay.png", "points.png", *stages_of_side("model"), *stages_of_side("scene"), "bop")
 """The entries the estimate writes at the top of ``--out``."""
 
 

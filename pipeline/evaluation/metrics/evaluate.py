@@ -422,6 +422,120 @@ def visib_bin(visib_fract: np.ndarray | float) -> np.ndarray:
     return np.clip(idx, 0, len(VISIB_BIN_EDGES) - 2)
 
 
+@dataclass(frozen=True)
+class ScoreTables:
+    """What the matching of :func:`_score` gives.
+
+    recalls: "vsd" (n_tau, n_theta) (only with VSD), "mssd" (10,), "mspd" (10,) recall
+      arrays over all valid GT instances (zeros when there is none).
+    per_object: obj_id, n_targets, AR_VSD, AR_MSSD, AR_MSPD, AR per object with a valid
+      GT instance.
+    n_targets: valid GT instances of the target images (the recalls' denominator).
+    validity: scene_id, im_id, gt_id, gt_visib_fract, gt_valid of every GT instance of
+      the target images (merged into the errors table).
+    per_visibility: visib_min, visib_max, n_targets, AR_VSD, AR_MSSD, AR_MSPD, AR per
+      visible-fraction bin (:data:`VISIB_BIN_EDGES`).
+    """
+
+    recalls: dict[str, np.ndarray]
+    per_object: pd.DataFrame
+    n_targets: int
+    validity: pd.DataFrame
+    per_visibility: pd.DataFrame
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """The K correctness settings of BOP19 in order: VSD (tau-major, theta-minor; none
+    without VSD), MSSD (x diameter), MSPD (px at 640 px width)."""
+
+    with_vsd: bool
+    n_tau: int
+    n_vsd: int
+    n_mssd: int
+    K: int
+    thresholds: np.ndarray  # (K,)
+    tau_index: np.ndarray  # (n_tau * n_theta,): the tau of each VSD setting
+
+    @classmethod
+    def of(cls, taus: np.ndarray, with_vsd: bool) -> "_Settings":
+        n_tau = len(taus)
+        n_vsd = n_tau * len(VSD_THETAS) if with_vsd else 0
+        n_mssd = len(MSSD_THRESHOLDS)
+        thresholds = np.concatenate([np.tile(VSD_THETAS, n_tau) if with_vsd else np.empty(0), MSSD_THRESHOLDS,
+                                     MSPD_THRESHOLDS])
+        return cls(with_vsd, n_tau, n_vsd, n_mssd, n_vsd + n_mssd + len(MSPD_THRESHOLDS), thresholds,
+                   np.repeat(np.arange(n_tau), len(VSD_THETAS)))
+
+    def split(self, counts: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-setting values (K,) as {"vsd": (n_tau, n_theta), "mssd": (10,), "mspd": (10,)}."""
+        out = {}
+        if self.with_vsd:
+            out["vsd"] = counts[: self.n_vsd].reshape(self.n_tau, len(VSD_THETAS))
+        out["mssd"] = counts[self.n_vsd : self.n_vsd + self.n_mssd]
+        out["mspd"] = counts[self.n_vsd + self.n_mssd :]
+        return out
+
+    def ar_row(self, hits: np.ndarray, n: int) -> dict[str, float]:
+        """AR_VSD, AR_MSSD, AR_MSPD and AR of ``hits`` (K,) true positives of ``n`` targets
+        (NaN when ``n`` is 0; AR_VSD and AR NaN without VSD)."""
+        if n == 0:
+            return {"AR_VSD": float("nan"), "AR_MSSD": float("nan"), "AR_MSPD": float("nan"), "AR": float("nan")}
+        r = self.split(hits.astype(np.float64) / n)
+        row = {
+            "AR_VSD": float(r["vsd"].mean()) if self.with_vsd else float("nan"),
+            "AR_MSSD": float(r["mssd"].mean()),
+            "AR_MSPD": float(r["mspd"].mean()),
+        }
+        row["AR"] = float(np.mean([row["AR_VSD"], row["AR_MSSD"], row["AR_MSPD"]])) if self.with_vsd else float("nan")
+        return row
+
+
+@dataclass
+class _SortedErrors:
+    """Error rows as arrays sorted by (scene, image, object, matching order, gt_id), the
+    matching order being decreasing score, then est_id (file order); ``groups`` maps
+    (scene, image, object) to its rows ``[a, b)``. mssd in mm, mspd in px, vsd (rows,
+    n_tau) (None without VSD)."""
+
+    est: np.ndarray | None = None
+    gt: np.ndarray | None = None
+    mssd: np.ndarray | None = None
+    mspd: np.ndarray | None = None
+    vsd: np.ndarray | None = None
+    groups: dict[tuple[int, int, int], tuple[int, int]] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, errors: pd.DataFrame, taus: np.ndarray, with_vsd: bool) -> "_SortedErrors":
+        if not len(errors):
+            return cls()
+        sc, im, ob = (errors[c].to_numpy(np.int64) for c in ("scene_id", "im_id", "obj_id"))
+        est, gt, score = errors["est_id"].to_numpy(np.int64), errors["gt_id"].to_numpy(np.int64), errors["score"].to_numpy(np.float64)
+        order = np.lexsort((gt, est, -score, ob, im, sc))
+        sc, im, ob, est, gt = sc[order], im[order], ob[order], est[order], gt[order]
+        new_group = np.ones(len(sc), dtype=bool)
+        new_group[1:] = (sc[1:] != sc[:-1]) | (im[1:] != im[:-1]) | (ob[1:] != ob[:-1])
+        starts = np.flatnonzero(new_group)
+        ends = np.append(starts[1:], len(sc))
+        return cls(est, gt, errors["mssd"].to_numpy(np.float64)[order], errors["mspd"].to_numpy(np.float64)[order],
+                   errors[[vsd_column(t) for t in taus]].to_numpy(np.float64)[order] if with_vsd else None,
+                   {(int(sc[a]), int(im[a]), int(ob[a])): (int(a), int(b)) for a, b in zip(starts, ends)})
+
+
+@dataclass
+class _Tally:
+    """True positives (per setting) and valid targets, in all, per object and per
+    visible-fraction bin, and every GT instance's validity row."""
+
+    tps: np.ndarray  # (K,)
+    bin_tars: np.ndarray  # (n_bins,)
+    bin_tps: np.ndarray  # (n_bins, K)
+    obj_tars: dict[int, int] = field(default_factory=dict)
+    obj_tps: dict[int, np.ndarray] = field(default_factory=dict)
+    n_targets: int = 0
+    validity: list[tuple[int, int, int, float, bool]] = field(default_factory=list)
+
+
 def _score(
     dataset: BopDataset,
     targets: list[Target],
@@ -429,121 +543,27 @@ def _score(
     taus: np.ndarray,
     with_vsd: bool,
     visib_gt_min: float,
-) -> tuple[dict[str, np.ndarray], pd.DataFrame, int, pd.DataFrame, pd.DataFrame]:
-    """Recalls per setting, per-object table, target count, errors with validity, per-visibility table."""
-    n_tau = len(taus)
-    # Settings, in order: VSD (tau-major, theta-minor), MSSD, MSPD.
-    n_vsd = n_tau * len(VSD_THETAS) if with_vsd else 0
-    n_mssd = len(MSSD_THRESHOLDS)
-    K = n_vsd + n_mssd + len(MSPD_THRESHOLDS)
-    thresholds = np.concatenate([np.tile(VSD_THETAS, n_tau) if with_vsd else np.empty(0), MSSD_THRESHOLDS, MSPD_THRESHOLDS])
-    tau_index = np.repeat(np.arange(n_tau), len(VSD_THETAS))
-    vsd_cols = [vsd_column(t) for t in taus]
+) -> ScoreTables:
+    """Match the estimates of every target image to its valid GT instances, per
+    correctness setting, and pool the recalls (see :class:`ScoreTables`)."""
+    st = _Settings.of(taus, with_vsd)
     infos = eval_models_info(dataset)
     n_bins = len(VISIB_BIN_EDGES) - 1
-
     by_image: dict[tuple[int, int], dict[int, int]] = {}
     for t in targets:
         by_image.setdefault((t.scene_id, t.im_id), {})[t.obj_id] = t.inst_count
-
-    # Error rows as arrays, sorted by (scene, image, object, matching order, gt_id):
-    # the matching order is decreasing score, then est_id (file order).
-    groups: dict[tuple[int, int, int], tuple[int, int]] = {}
-    if len(errors):
-        sc, im, ob = (errors[c].to_numpy(np.int64) for c in ("scene_id", "im_id", "obj_id"))
-        est, gt, score = errors["est_id"].to_numpy(np.int64), errors["gt_id"].to_numpy(np.int64), errors["score"].to_numpy(np.float64)
-        order = np.lexsort((gt, est, -score, ob, im, sc))
-        sc, im, ob, est, gt = sc[order], im[order], ob[order], est[order], gt[order]
-        e_mssd = errors["mssd"].to_numpy(np.float64)[order]
-        e_mspd = errors["mspd"].to_numpy(np.float64)[order]
-        e_vsd = errors[vsd_cols].to_numpy(np.float64)[order] if with_vsd else None
-        new_group = np.ones(len(sc), dtype=bool)
-        new_group[1:] = (sc[1:] != sc[:-1]) | (im[1:] != im[:-1]) | (ob[1:] != ob[:-1])
-        starts = np.flatnonzero(new_group)
-        ends = np.append(starts[1:], len(sc))
-        groups = {(int(sc[a]), int(im[a]), int(ob[a])): (int(a), int(b)) for a, b in zip(starts, ends)}
-
-    tps = np.zeros(K, dtype=np.int64)
-    obj_tars: dict[int, int] = {}
-    obj_tps: dict[int, np.ndarray] = {}
-    bin_tars = np.zeros(n_bins, dtype=np.int64)
-    bin_tps = np.zeros((n_bins, K), dtype=np.int64)
-    n_targets = 0
-    validity = []
+    srt = _SortedErrors.of(errors, taus, with_vsd)
+    tally = _Tally(np.zeros(st.K, dtype=np.int64), np.zeros(n_bins, dtype=np.int64),
+                   np.zeros((n_bins, st.K), dtype=np.int64))
     for (scene_id, im_id), inst_counts in sorted(by_image.items()):
-        gts = dataset.scene_gt(scene_id).get(im_id)
-        gt_infos = dataset.scene_gt_info(scene_id).get(im_id)
-        if gts is None or gt_infos is None or len(gt_infos) != len(gts):
-            raise ValueError(
-                f"{dataset.scene_dir(scene_id)}: target image {im_id} lacks consistent entries in "
-                "scene_gt.json and scene_gt_info.json"
-            )
-        gt_obj = np.array([g.obj_id for g in gts], dtype=np.int64)
-        fracts = [i.visib_fract for i in gt_infos]
-        gt_bin = visib_bin(fracts) if len(fracts) else np.zeros(0, dtype=np.int64)
-        valid = valid_gt_mask(gt_obj.tolist(), fracts, inst_counts, visib_gt_min)
-        for g in np.flatnonzero(valid):
-            o = int(gt_obj[g])
-            obj_tars[o] = obj_tars.get(o, 0) + 1
-            obj_tps.setdefault(o, np.zeros(K, dtype=np.int64))
-            bin_tars[gt_bin[g]] += 1
-            n_targets += 1
-        for g, (f, v) in enumerate(zip(fracts, valid)):
-            validity.append((scene_id, im_id, g, float(f), bool(v)))
-        width = None
-        for obj_id in inst_counts:
-            span = groups.get((scene_id, im_id, obj_id))
-            if span is None:
-                continue
-            a, b = span
-            gt_ids = np.flatnonzero(gt_obj == obj_id)
-            lut = np.full(len(gt_obj), -1, dtype=np.int64)
-            lut[gt_ids] = np.arange(len(gt_ids))
-            est_g = est[a:b]
-            new_est = np.ones(b - a, dtype=bool)
-            new_est[1:] = est_g[1:] != est_g[:-1]
-            ei = np.cumsum(new_est) - 1
-            gi = lut[gt[a:b]]
-            E, G = int(ei[-1]) + 1, len(gt_ids)
-            err = np.full((E, G, K), np.inf)
-            if with_vsd:
-                err[ei, gi, :n_vsd] = e_vsd[a:b][:, tau_index]
-            if width is None:
-                width = dataset.scene_camera(scene_id)[im_id].width
-            err[ei, gi, n_vsd : n_vsd + n_mssd] = (e_mssd[a:b] / float(infos[obj_id].diameter))[:, None]
-            err[ei, gi, n_vsd + n_mssd :] = ((640.0 / width) * e_mspd[a:b])[:, None]
-            matched = greedy_match(err, valid[gt_ids], thresholds)  # (K, E)
-            ks, es = np.nonzero(matched >= 0)
-            hits = np.bincount(ks, minlength=K)
-            tps += hits
-            obj_tps.setdefault(obj_id, np.zeros(K, dtype=np.int64))
-            obj_tps[obj_id] += hits
-            np.add.at(bin_tps, (gt_bin[gt_ids[matched[ks, es]]], ks), 1)
+        _tally_image(tally, dataset, scene_id, im_id, inst_counts, srt, st, infos, visib_gt_min)
 
-    def split(counts: np.ndarray) -> dict[str, np.ndarray]:
-        out = {}
-        if with_vsd:
-            out["vsd"] = counts[:n_vsd].reshape(n_tau, len(VSD_THETAS))
-        out["mssd"] = counts[n_vsd : n_vsd + n_mssd]
-        out["mspd"] = counts[n_vsd + n_mssd :]
-        return out
-
-    def ar_row(hits: np.ndarray, n: int) -> dict[str, float]:
-        if n == 0:
-            return {"AR_VSD": float("nan"), "AR_MSSD": float("nan"), "AR_MSPD": float("nan"), "AR": float("nan")}
-        r = split(hits.astype(np.float64) / n)
-        row = {
-            "AR_VSD": float(r["vsd"].mean()) if with_vsd else float("nan"),
-            "AR_MSSD": float(r["mssd"].mean()),
-            "AR_MSPD": float(r["mspd"].mean()),
-        }
-        row["AR"] = float(np.mean([row["AR_VSD"], row["AR_MSSD"], row["AR_MSPD"]])) if with_vsd else float("nan")
-        return row
-
-    recalls = {k: (v / n_targets if n_targets else np.zeros(v.shape)) for k, v in split(tps.astype(np.float64)).items()}
+    recalls = {k: (v / tally.n_targets if tally.n_targets else np.zeros(v.shape))
+               for k, v in st.split(tally.tps.astype(np.float64)).items()}
     ar_cols = ["AR_VSD", "AR_MSSD", "AR_MSPD", "AR"]
     per_object = pd.DataFrame(
-        [{"obj_id": o, "n_targets": obj_tars[o], **ar_row(obj_tps[o], obj_tars[o])} for o in sorted(obj_tars)],
+        [{"obj_id": o, "n_targets": tally.obj_tars[o], **st.ar_row(tally.obj_tps[o], tally.obj_tars[o])}
+         for o in sorted(tally.obj_tars)],
         columns=["obj_id", "n_targets", *ar_cols],
     )
     per_visibility = pd.DataFrame(
@@ -551,15 +571,82 @@ def _score(
             {
                 "visib_min": float(VISIB_BIN_EDGES[i]),
                 "visib_max": float(VISIB_BIN_EDGES[i + 1]),
-                "n_targets": int(bin_tars[i]),
-                **ar_row(bin_tps[i], int(bin_tars[i])),
+                "n_targets": int(tally.bin_tars[i]),
+                **st.ar_row(tally.bin_tps[i], int(tally.bin_tars[i])),
             }
             for i in range(n_bins)
         ],
         columns=["visib_min", "visib_max", "n_targets", *ar_cols],
     )
-    valid_df = pd.DataFrame(validity, columns=["scene_id", "im_id", "gt_id", "gt_visib_fract", "gt_valid"])
-    return recalls, per_object, n_targets, valid_df, per_visibility
+    validity = pd.DataFrame(tally.validity, columns=["scene_id", "im_id", "gt_id", "gt_visib_fract", "gt_valid"])
+    return ScoreTables(recalls, per_object, tally.n_targets, validity, per_visibility)
+
+
+def _tally_image(tally: _Tally, dataset: BopDataset, scene_id: int, im_id: int, inst_counts: dict[int, int],
+                 srt: _SortedErrors, st: _Settings, infos: dict, visib_gt_min: float) -> None:
+    """Add one target image to ``tally``: its valid GT instances (targets, per object and
+    per visible-fraction bin), the validity of each GT instance, and the true positives
+    of the greedy matching of each target object's estimates. ``inst_counts``: obj_id ->
+    inst_count of the image's targets."""
+    gts = dataset.scene_gt(scene_id).get(im_id)
+    gt_infos = dataset.scene_gt_info(scene_id).get(im_id)
+    if gts is None or gt_infos is None or len(gt_infos) != len(gts):
+        raise ValueError(
+            f"{dataset.scene_dir(scene_id)}: target image {im_id} lacks consistent entries in "
+            "scene_gt.json and scene_gt_info.json"
+        )
+    gt_obj = np.array([g.obj_id for g in gts], dtype=np.int64)
+    fracts = [i.visib_fract for i in gt_infos]
+    gt_bin = visib_bin(fracts) if len(fracts) else np.zeros(0, dtype=np.int64)
+    valid = valid_gt_mask(gt_obj.tolist(), fracts, inst_counts, visib_gt_min)
+    for g in np.flatnonzero(valid):
+        o = int(gt_obj[g])
+        tally.obj_tars[o] = tally.obj_tars.get(o, 0) + 1
+        tally.obj_tps.setdefault(o, np.zeros(st.K, dtype=np.int64))
+        tally.bin_tars[gt_bin[g]] += 1
+        tally.n_targets += 1
+    for g, (f, v) in enumerate(zip(fracts, valid)):
+        tally.validity.append((scene_id, im_id, g, float(f), bool(v)))
+    width = None
+    for obj_id in inst_counts:
+        span = srt.groups.get((scene_id, im_id, obj_id))
+        if span is None:
+            continue
+        if width is None:
+            width = dataset.scene_camera(scene_id)[im_id].width
+        gt_ids = np.flatnonzero(gt_obj == obj_id)
+        err = _object_errors(srt, span, gt_obj, gt_ids, st, float(infos[obj_id].diameter), width)
+        matched = greedy_match(err, valid[gt_ids], st.thresholds)  # (K, E)
+        ks, es = np.nonzero(matched >= 0)
+        hits = np.bincount(ks, minlength=st.K)
+        tally.tps += hits
+        tally.obj_tps.setdefault(obj_id, np.zeros(st.K, dtype=np.int64))
+        tally.obj_tps[obj_id] += hits
+        np.add.at(tally.bin_tps, (gt_bin[gt_ids[matched[ks, es]]], ks), 1)
+
+
+def _object_errors(srt: _SortedErrors, span: tuple[int, int], gt_obj: np.ndarray, gt_ids: np.ndarray,
+                   st: _Settings, diameter: float, width: int) -> np.ndarray:
+    """The (E, G, K) error of each of an object's E estimates (error rows ``span`` of
+    ``srt``, in matching order) against each of its G GT instances (``gt_ids``, indices
+    into the image's GT list ``gt_obj``) per setting, in the settings' units: VSD, MSSD
+    / ``diameter`` (mm), MSPD scaled to a 640 px wide image (``width`` px); inf where a
+    pair has no error row."""
+    a, b = span
+    lut = np.full(len(gt_obj), -1, dtype=np.int64)
+    lut[gt_ids] = np.arange(len(gt_ids))
+    est_g = srt.est[a:b]
+    new_est = np.ones(b - a, dtype=bool)
+    new_est[1:] = est_g[1:] != est_g[:-1]
+    ei = np.cumsum(new_est) - 1
+    gi = lut[srt.gt[a:b]]
+    E, G = int(ei[-1]) + 1, len(gt_ids)
+    err = np.full((E, G, st.K), np.inf)
+    if st.with_vsd:
+        err[ei, gi, : st.n_vsd] = srt.vsd[a:b][:, st.tau_index]
+    err[ei, gi, st.n_vsd : st.n_vsd + st.n_mssd] = (srt.mssd[a:b] / diameter)[:, None]
+    err[ei, gi, st.n_vsd + st.n_mssd :] = ((640.0 / width) * srt.mspd[a:b])[:, None]
+    return err
 
 
 # ---------------------------------------------------------------------------- entry points
@@ -651,14 +738,13 @@ def evaluate(
     with steps("match estimates and compute the recalls"):
         errors = _errors_frame(rows, taus)
 
-        recalls, per_object, n_targets, valid_df, per_visibility = _score(
-            dataset, target_list, errors, taus, with_vsd, visib_gt_min
-        )
-        errors = errors.merge(valid_df, on=["scene_id", "im_id", "gt_id"], how="left")
+        tables = _score(dataset, target_list, errors, taus, with_vsd, visib_gt_min)
+        errors = errors.merge(tables.validity, on=["scene_id", "im_id", "gt_id"], how="left")
         order = ["scene_id", "im_id", "obj_id", "est_id", "gt_id", "score", "gt_visib_fract", "gt_valid", "mssd", "mspd"]
         errors = errors[order + [c for c in errors.columns if c not in order]]
     t_match = _time.perf_counter() - t_match
 
+    recalls = tables.recalls
     ar_mssd = float(recalls["mssd"].mean())
     ar_mspd = float(recalls["mspd"].mean())
     ar_vsd = float(recalls["vsd"].mean()) if with_vsd else None
@@ -667,7 +753,7 @@ def evaluate(
         "AR_VSD": ar_vsd,
         "AR_MSSD": ar_mssd,
         "AR_MSPD": ar_mspd,
-        "n_targets": int(n_targets),
+        "n_targets": int(tables.n_targets),
         "n_estimates": int(len(df)),
         "n_ignored": n_ignored,
         "n_evaluated": int(len(ests)),
@@ -682,7 +768,7 @@ def evaluate(
         "timing": _timing_summary(timing, t_prepare, t_match, t_err, _workers_used(n_workers, mapper, len(jobs))),
         "notes": notes + time_notes,
     }
-    return Scores(summary, errors, per_object, recalls, per_visibility)
+    return Scores(summary, errors, tables.per_object, recalls, tables.per_visibility)
 
 
 def _workers_used(n_workers: int, mapper: Any, n_jobs: int) -> int:

@@ -118,10 +118,6 @@ def translate(x: float, y: float, z: float) -> np.ndarray:
     return T
 
 
-def _move(patches: list[Patch], T: np.ndarray) -> list[Patch]:
-    return [p.transformed(T) for p in patches]
-
-
 def _bands(bands: list[tuple[float, float, tuple[int, int, int]]], default: tuple[int, int, int]) -> Callable:
     """Colour function of z only: (z0, z1, rgb) bands over a default colour."""
 

@@ -146,6 +146,12 @@ def rle_decode(rle: dict) -> np.ndarray:
     return flat.reshape((h, w), order="F")
 
 
+def prior_row_mask(row: Any) -> np.ndarray:
+    """(H, W) bool mask of one row of segment_prior's table (its ``rle_counts``, ``height``
+    and ``width``): the one place a stored prior is decoded."""
+    return rle_decode({"counts": list(row.rle_counts), "size": [int(row.height), int(row.width)]})
+
+
 def _is_int(v: Any) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
 

@@ -20,6 +20,7 @@ import numpy as np
 from pipeline.common.store import atomic_write_text
 
 from .errors import BopFormatError
+from .read_bytes import read_bytes
 
 
 def _to_builtin(obj: Any) -> Any:
@@ -96,14 +97,7 @@ def read_text(path: Path | str) -> str:
     naming the file and what is wrong, on one line.
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise BopFormatError(f"{path}: file not found") from None
-    except IsADirectoryError:
-        raise BopFormatError(f"{path}: is a directory, not a file") from None
-    except OSError as e:
-        raise BopFormatError(f"{path}: cannot read the file: {e.strerror or e}") from None
+    raw = read_bytes(path)
     # UTF-16 is the usual wrong encoding (PowerShell's `>`, Excel's "Unicode text"):
     # a BOM, or ASCII text whose bytes are NUL at every other position (only there).
     even, odd = raw[0:64:2].count(0), raw[1:64:2].count(0)

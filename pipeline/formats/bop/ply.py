@@ -16,12 +16,13 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from .errors import BopFormatError
 from .jsonio import brief
+from .read_bytes import read_bytes
 
 if TYPE_CHECKING:  # imported where a mesh is built: ~0.7 s that reading a PLY does not need
     import trimesh
@@ -420,15 +421,28 @@ def read_ply(path: Path | str) -> PlyData:
     out-of-range face indices.
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise BopFormatError(f"{path}: file not found") from None
-    except IsADirectoryError:
-        raise BopFormatError(f"{path}: is a directory, not a file") from None
-    except OSError as e:
-        raise BopFormatError(f"{path}: cannot read the file: {e.strerror or e}") from None
+    raw = read_bytes(path)
     order, elements, comments, body = _parse_header(path, raw)
+    data = _read_body(path, raw, body, order, elements)
+    props = {el.name: {p.name: p for p in el.properties} for el in elements}
+    if "vertex" not in data:
+        raise BopFormatError(f"{path}: no 'vertex' element")
+
+    def column(name: str) -> np.ndarray | None:
+        """(V,) values of the scalar vertex property ``name``, None when absent."""
+        return _vertex_column(path, data["vertex"], props["vertex"], name)
+
+    vertices = _vertex_positions(path, column)
+    normals, colors, uv = _vertex_attributes(column)
+    faces = _face_indices(path, data, props, len(vertices))
+    return PlyData(vertices, faces, normals, colors, uv, _texture_file(comments))
+
+
+def _read_body(path: Path, raw: bytes, body: int, order: str | None,
+               elements: list[_Element]) -> dict[str, dict[str, np.ndarray | list]]:
+    """The values of every element after the header (which ends at byte ``body``):
+    element name -> property name -> values; ascii when ``order`` is None, else binary
+    of that byte order."""
     data: dict[str, dict] = {}
     if order is None:
         tokens = raw[body:].decode("ascii", errors="replace").split()
@@ -439,18 +453,25 @@ def read_ply(path: Path | str) -> PlyData:
         pos = body
         for el in elements:
             data[el.name], pos = _read_binary_element(path, raw, pos, el, order)
-    props = {el.name: {p.name: p for p in el.properties} for el in elements}
+    return data
 
-    def column(name: str) -> np.ndarray | None:
-        """(V,) values of the scalar vertex property ``name``, None when absent."""
-        if name not in data["vertex"]:
-            return None
-        if props["vertex"][name].is_list:
-            raise BopFormatError(f"{path}: vertex property '{name}' is a list; a number is needed")
-        return data["vertex"][name]
 
-    if "vertex" not in data:
-        raise BopFormatError(f"{path}: no 'vertex' element")
+def _vertex_column(path: Path, vertex: dict[str, np.ndarray | list], props: dict[str, _Property],
+                   name: str) -> np.ndarray | None:
+    """(V,) values of the scalar vertex property ``name`` (``vertex``: the vertex
+    element's values, ``props`` its properties), None when absent; ``BopFormatError``
+    when it is a list."""
+    if name not in vertex:
+        return None
+    if props[name].is_list:
+        raise BopFormatError(f"{path}: vertex property '{name}' is a list; a number is needed")
+    return vertex[name]
+
+
+def _vertex_positions(path: Path, column: Callable[[str], np.ndarray | None]) -> np.ndarray:
+    """(V, 3) float32 vertex coordinates from the x, y, z columns; ``BopFormatError``
+    when one is missing, or a vertex has a non-finite coordinate or one beyond the
+    float32 range."""
     xyz = [column(name) for name in ("x", "y", "z")]
     for name, values in zip("xyz", xyz):
         if values is None:
@@ -470,6 +491,15 @@ def read_ply(path: Path | str) -> PlyData:
         i = int(np.flatnonzero(beyond)[0])
         raise BopFormatError(f"{path}: vertex {i} has a coordinate beyond the float32 range "
                              f"({', '.join(map(repr, v64[i].tolist()))})")
+    return vertices
+
+
+def _vertex_attributes(column: Callable[[str], np.ndarray | None]
+                       ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """(normals (V, 3) float32, colours (V, 3) uint8, texture uv (V, 2) float32) of the
+    vertices, each None when the file has no such columns. Colours stored as floats
+    are taken as [0, 1]; any colour is clipped to [0, 255], never wrapped. Normals and
+    uv are not checked (inf/NaN stay)."""
     normals = None
     nrm = [column(name) for name in ("nx", "ny", "nz")]
     if all(c is not None for c in nrm):
@@ -492,7 +522,14 @@ def read_ply(path: Path | str) -> PlyData:
             with np.errstate(over="ignore", invalid="ignore"):
                 uv = np.stack([cu, cv], axis=1).astype(np.float32)
             break
+    return normals, colors, uv
 
+
+def _face_indices(path: Path, data: dict[str, dict[str, np.ndarray | list]],
+                  props: dict[str, dict[str, _Property]], n_vertices: int) -> np.ndarray:
+    """(F, 3) int64 triangles of the face element (polygons fanned into triangles),
+    (0, 3) without one; ``BopFormatError`` when its vertex index list is missing, not a
+    list, not of an integer type, or an index is outside ``[0, n_vertices)``."""
     faces = np.zeros((0, 3), np.int64)
     if "face" in data:
         face_el = data["face"]
@@ -505,17 +542,21 @@ def read_ply(path: Path | str) -> PlyData:
         if np.dtype(prop.dtype).kind not in "iu":  # a float index would be truncated, NaN cast to garbage
             raise BopFormatError(f"{path}: face indices must be integers, got type '{_TYPE_NAMES[prop.dtype]}'")
         faces = _triangulate(path, face_el[key])
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+    if faces.size and (faces.min() < 0 or faces.max() >= n_vertices):
         raise BopFormatError(
-            f"{path}: face indices out of range [0, {len(vertices)}): min {faces.min()}, max {faces.max()}"
+            f"{path}: face indices out of range [0, {n_vertices}): min {faces.min()}, max {faces.max()}"
         )
+    return faces
 
+
+def _texture_file(comments: list[str]) -> str | None:
+    """The image named by the header's last ``comment TextureFile <image>`` line, if any."""
     texture_file = None
     for c in comments:
         parts = c.split(None, 1)
         if len(parts) == 2 and parts[0].lower() == "texturefile":
             texture_file = parts[1].strip()
-    return PlyData(vertices, faces, normals, colors, uv, texture_file)
+    return texture_file
 
 
 # ---------------------------------------------------------------------------- trimesh

@@ -208,7 +208,7 @@ def fetch_download(
 
 def _fetch(ctx: _Context, pinned: str | None, progress: bool | None) -> FetchResult:
     """:func:`fetch_download` after the names are known; OSError is the disk's."""
-    download, final, part, log = ctx.download, ctx.final, ctx.part, ctx.log
+    download, final, log = ctx.download, ctx.final, ctx.log
     done = _existing(ctx, pinned)
     if done is not None:
         return done

@@ -77,7 +77,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pipeline.method.encoders.registry import VisualEncoder, WeightsNotFound, register_encoder, resolve_weights_dir, resolve_weights_path
+from pipeline.formats.weights.formats import WeightsNotFound
+from pipeline.method.encoders.registry import VisualEncoder, register_encoder, resolve_weights_dir, resolve_weights_path
 from pipeline.method.encoders.torch_device import resolve_device
 
 PATCH_SIZE = 14

@@ -16,7 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 import open3d as o3d
 
-from pipeline.method.encoders.registry import GeometricEncoder, register_encoder
+from pipeline.method.encoders.registry import GeometricEncoder, register_encoder, with_checked_points
 from pipeline.method.geometry.normals import estimate_normals
 
 FPFH_BINS = 33
@@ -69,6 +69,7 @@ class FpfhEncoder(GeometricEncoder):
             "norm": self.norm,
         }
 
+    @with_checked_points
     def encode(
         self,
         points: np.ndarray,
@@ -77,18 +78,15 @@ class FpfhEncoder(GeometricEncoder):
         *,
         viewpoint: np.ndarray | None = None,
     ) -> np.ndarray:
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if diameter <= 0:
-            raise ValueError(f"fpfh: diameter must be positive, got {diameter}")
-        if len(pts) == 0:
-            return np.zeros((0, self.dim), dtype=np.float32)
+        """Descriptors (N, dim) float32 of ``points`` (N, 3) float64 mm (N >= 1; see
+        :func:`~pipeline.method.encoders.registry.with_checked_points`)."""
         if normals is None:
             normals = estimate_normals(
-                pts, self.normal_radius * diameter, max_nn=self.normal_max_nn, viewpoint=viewpoint
+                points, self.normal_radius * diameter, max_nn=self.normal_max_nn, viewpoint=viewpoint
             )
-        elif np.shape(normals) != pts.shape:
-            raise ValueError(f"fpfh: normals shape {np.shape(normals)} differs from points shape {pts.shape}")
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        elif np.shape(normals) != points.shape:
+            raise ValueError(f"fpfh: normals shape {np.shape(normals)} differs from points shape {points.shape}")
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
         parts = []
         for r in self.radii:

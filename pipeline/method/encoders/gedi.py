@@ -114,7 +114,9 @@ from pipeline.method.encoders.gedi_ops import (
     gather_points,
     group_points,
 )
-from pipeline.method.encoders.registry import GeometricEncoder, WeightsNotFound, register_encoder, resolve_weights_path
+from pipeline.formats.weights.formats import WeightsNotFound
+from pipeline.method.encoders.registry import (GeometricEncoder, register_encoder, resolve_weights_path,
+                                               with_checked_points)
 from pipeline.method.encoders.torch_device import resolve_device
 
 GEDI_DIM = 32
@@ -692,6 +694,7 @@ class GeDiEncoder(GeometricEncoder):
             "weights_sha1": self.weights_sha1,
         }
 
+    @with_checked_points
     def encode(
         self,
         points: np.ndarray,
@@ -700,15 +703,11 @@ class GeDiEncoder(GeometricEncoder):
         *,
         viewpoint: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Descriptors (N, dim) of every point; normals and viewpoint are not used (the
-        frame comes from the neighbourhood)."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if diameter <= 0:
-            raise ValueError(f"gedi: diameter must be positive, got {diameter}")
-        if len(pts) == 0:
-            return np.zeros((0, self.dim), dtype=np.float32)
-        tree = cKDTree(pts)
-        parts = [self._encode_radius(pts, tree, r * diameter) for r in self.radii]
+        """Descriptors (N, dim) float32 of every point of ``points`` (N, 3) float64 mm (N >= 1;
+        see :func:`~pipeline.method.encoders.registry.with_checked_points`); normals and
+        viewpoint are not used (the frame comes from the neighbourhood)."""
+        tree = cKDTree(points)
+        parts = [self._encode_radius(points, tree, r * diameter) for r in self.radii]
         return np.concatenate(parts, axis=1).astype(np.float32)
 
     def _encode_radius(self, pts: np.ndarray, tree: cKDTree, radius: float, count: int | None = None) -> np.ndarray:

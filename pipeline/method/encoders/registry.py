@@ -24,6 +24,7 @@ encoders (``dim == 0``) of geometry-only and vision-only runs.
 from __future__ import annotations
 
 import abc
+import functools
 import importlib
 import importlib.util
 import json
@@ -35,7 +36,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from pipeline.common.config import PROJECT_ROOT
-from pipeline.formats.weights.formats import WeightsNotFound  # re-exported: the encoders raise it
 
 EncoderKind = Literal["geometric", "visual"]
 
@@ -135,6 +135,25 @@ class GeometricEncoder(_EncoderBase):
         towards ``viewpoint`` ((3,) mm, the camera centre for scene points).
         diameter: object diameter in mm; scales are relative to it.
         """
+
+
+def with_checked_points(encode: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """Decorator of a :meth:`GeometricEncoder.encode` holding its common start: the
+    wrapped method gets ``points`` as (N, 3) float64 mm, a positive ``diameter`` (else
+    ``ValueError`` naming the encoder) and at least one point (no points give (0, dim)
+    float32 descriptors without calling it)."""
+
+    @functools.wraps(encode)
+    def checked(self: GeometricEncoder, points: np.ndarray, normals: np.ndarray | None, diameter: float, *,
+                viewpoint: np.ndarray | None = None) -> np.ndarray:
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if diameter <= 0:
+            raise ValueError(f"{self.name}: diameter must be positive, got {diameter}")
+        if len(pts) == 0:
+            return np.zeros((0, self.dim), dtype=np.float32)
+        return encode(self, pts, normals, diameter, viewpoint=viewpoint)
+
+    return checked
 
 
 class VisualEncoder(_EncoderBase):

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy import ndimage
@@ -64,7 +64,6 @@ __all__ = [
     "super_fibonacci_rotations",
     "expand_symmetries",
     "distinct_under",
-    "symmetries_to_dict",
     "symmetries_from_dict",
     "continuous_transform",
     "transform_distance",
@@ -101,8 +100,23 @@ class SymmetrySet:
         return expand_symmetries(self.discrete, self.continuous, step_deg=step_deg)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dict in BOP's models_info format (see :func:`symmetries_to_dict`)."""
-        return symmetries_to_dict(self)
+        """Plain JSON-able dict in BOP's models_info format.
+
+        ``{"symmetries_discrete": [[16 floats, row-major (4, 4)], ...],
+        "symmetries_continuous": [{"axis": [3 floats], "offset": [3 floats mm]}, ...]}``;
+        both keys are always present (possibly empty lists).
+        """
+        return {
+            "symmetries_discrete": [[float(x) for x in np.asarray(T, dtype=np.float64).reshape(16)]
+                                    for T in self.discrete],
+            "symmetries_continuous": [
+                {
+                    "axis": [float(x) for x in np.asarray(c["axis"], dtype=np.float64).reshape(3)],
+                    "offset": [float(x) for x in np.asarray(c.get("offset", np.zeros(3)), dtype=np.float64).reshape(3)],
+                }
+                for c in self.continuous
+            ],
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "SymmetrySet":
@@ -206,25 +220,6 @@ def distinct_under(
                    for K in kept):
             kept.append(T)
     return kept
-
-
-def symmetries_to_dict(sym: SymmetrySet) -> dict[str, Any]:
-    """Plain JSON-able dict in BOP's models_info format.
-
-    ``{"symmetries_discrete": [[16 floats, row-major (4, 4)], ...],
-    "symmetries_continuous": [{"axis": [3 floats], "offset": [3 floats mm]}, ...]}``;
-    both keys are always present (possibly empty lists).
-    """
-    return {
-        "symmetries_discrete": [[float(x) for x in np.asarray(T, dtype=np.float64).reshape(16)] for T in sym.discrete],
-        "symmetries_continuous": [
-            {
-                "axis": [float(x) for x in np.asarray(c["axis"], dtype=np.float64).reshape(3)],
-                "offset": [float(x) for x in np.asarray(c.get("offset", np.zeros(3)), dtype=np.float64).reshape(3)],
-            }
-            for c in sym.continuous
-        ],
-    }
 
 
 def symmetries_from_dict(d: dict[str, Any]) -> SymmetrySet:
@@ -634,14 +629,50 @@ def estimate_symmetries(
     thr = p.threshold * float(diameter)
     merge_mm = 0.05 * float(diameter)
 
-    # Coarse search over SO(3).
+    init = _coarse_candidates(surf, p)
+    refined, scores = _refine_candidates(surf, init, p, thr)
+    ok = scores <= thr
+    rejected_best = float(scores[~ok].min()) if np.any(~ok) else float("inf")
+    near_sel = ~ok & (scores <= p.near_threshold * float(diameter))
+    near_T, near_s = _dedup([T for T in refined[near_sel]], list(scores[near_sel]), p.merge_deg, merge_mm)
+    acc_T, acc_s = _dedup([T for T in refined[ok]], list(scores[ok]), p.merge_deg, merge_mm)
+    c, acc_T, acc_s = _recentre(surf, acc_T, p, thr)
+    continuous = _continuous_families(surf, acc_T, c, p, thr)
+    same = _same_modulo(continuous, p.merge_deg, merge_mm)
+    group, group_s = _discrete_group(surf, acc_T, acc_s, c, continuous, same, p, thr)
+    discrete = _discrete_representatives(group, continuous)
+    near = _near_symmetries(near_T, near_s, group, same, p.max_near)
+
+    if details is not None:
+        details.update(
+            near=near,
+            centre=c,
+            accepted=list(zip(acc_T, acc_s)),
+            group_scores=group_s[1:],
+            rejected_best=rejected_best,
+            threshold_mm=thr,
+            seconds=time.perf_counter() - t_start,
+            n_candidates=len(init),
+        )
+    return SymmetrySet(discrete=discrete, continuous=continuous)
+
+
+def _coarse_candidates(surf: _Surface, p: SymmetryParams) -> np.ndarray:
+    """Method step 2: the (K + 1, 4, 4) starting transforms of the refinement: rotations
+    about ``surf.c0`` at the ``p.n_candidates`` best local minima of the coarse score
+    over a super-Fibonacci grid of SO(3), and the identity last."""
     quats = super_fibonacci_rotations(p.n_rotations)
     Rs = Rotation.from_quat(quats).as_matrix()
     coarse = surf.coarse_scores(Rs)
     minima = _local_minima(quats, coarse)[: p.n_candidates]
-    init = np.stack([_about(R, surf.c0) for R in Rs[minima]] + [np.eye(4)])
+    return np.stack([_about(R, surf.c0) for R in Rs[minima]] + [np.eye(4)])
 
-    # Refinement and scoring.
+
+def _refine_candidates(surf: _Surface, init: np.ndarray, p: SymmetryParams,
+                       thr: float) -> tuple[np.ndarray, np.ndarray]:
+    """Method steps 3-4: (refined (K, 4, 4), scores (K,) mm) of the starting transforms
+    ``init`` (K, 4, 4): ICP, then up to ``p.polish_rounds`` more ICP runs of those
+    scoring below ``3 * thr`` mm that were still moving."""
     refined = surf.refine(init, p.refine_iters, p.rigid_iters)
     scores = surf.score(refined)
     # Polish: candidates near acceptance that were still moving (they slide slowly
@@ -659,20 +690,29 @@ def estimate_symmetries(
         scores[sel] = surf.score(polished)
         moving[:] = False
         moving[sel] = step > 0.1
-    ok = scores <= thr
-    rejected_best = float(scores[~ok].min()) if np.any(~ok) else float("inf")
-    near_sel = ~ok & (scores <= p.near_threshold * float(diameter))
-    near_T, near_s = _dedup([T for T in refined[near_sel]], list(scores[near_sel]), p.merge_deg, merge_mm)
-    acc_T, acc_s = _dedup([T for T in refined[ok]], list(scores[ok]), p.merge_deg, merge_mm)
+    return refined, scores
 
-    # Common centre, transforms re-expressed about it.
+
+def _recentre(surf: _Surface, acc_T: list[np.ndarray], p: SymmetryParams,
+              thr: float) -> tuple[np.ndarray, list[np.ndarray], list[float]]:
+    """Method step 5: (centre c (3,) mm, transforms, scores mm): the common fixed point
+    of the accepted non-identity transforms ``acc_T`` (each (4, 4)), every transform
+    re-expressed as its rotation about ``c`` and scored again; those still below
+    ``thr`` mm are kept."""
     nonid = [T for T in acc_T if _rotation_angles_deg(T[None, :3, :3])[0] >= p.merge_deg]
     c = _fit_centre(nonid, surf.c0)
     acc_T = [_about(T[:3, :3], c) for T in acc_T]
     acc_s = [float(x) for x in surf.score(np.stack(acc_T))]
-    acc_T, acc_s = [T for T, x in zip(acc_T, acc_s) if x <= thr], [x for x in acc_s if x <= thr]
+    return c, [T for T, x in zip(acc_T, acc_s) if x <= thr], [x for x in acc_s if x <= thr]
 
-    # Continuous families: clusters of rotation axes that pass the all-angles test.
+
+def _continuous_families(surf: _Surface, acc_T: list[np.ndarray], c: np.ndarray, p: SymmetryParams,
+                         thr: float) -> list[dict[str, np.ndarray]]:
+    """Method step 6: the continuous families ``{"axis", "offset"}`` (at most two):
+    clusters of the accepted rotations' axes (largest angle first) whose rotations by
+    every multiple of ``p.continuous_test_step_deg`` score below ``thr`` mm. Two (a
+    near-sphere, invariant to all of SO(3), which BOP's format cannot express) come
+    back orthogonal."""
     continuous: list[dict[str, np.ndarray]] = []
     tested: list[np.ndarray] = []
     order = sorted(range(len(acc_T)), key=lambda i: -_rotation_angles_deg(acc_T[i][None, :3, :3])[0])
@@ -688,13 +728,7 @@ def estimate_symmetries(
             continue
         tested.append(a)
         fam = {"axis": a, "offset": c - a * float(np.dot(a, c))}
-        passed = True
-        for ang in test_angles:
-            C = continuous_transform(fam, float(ang))
-            if surf.score(C[None])[0] > thr:
-                passed = False
-                break
-        if passed:
+        if not any(surf.score(continuous_transform(fam, float(ang))[None])[0] > thr for ang in test_angles):
             continuous.append(fam)
             if len(continuous) == 2:
                 break
@@ -705,18 +739,36 @@ def estimate_symmetries(
         a1 = a1 - a0 * float(np.dot(a0, a1))
         a1 /= np.linalg.norm(a1)
         continuous[1] = {"axis": a1, "offset": c - a1 * float(np.dot(a1, c))}
+    return continuous
 
-    # Discrete: remove family members, reduce modulo the families, close the group.
-    def _same(A: np.ndarray, B: np.ndarray) -> bool:
-        if _close(A, B, p.merge_deg, merge_mm):
+
+def _same_modulo(continuous: list[dict[str, np.ndarray]], merge_deg: float,
+                 merge_mm: float) -> Callable[[np.ndarray, np.ndarray], bool]:
+    """``same(A, B)``: whether two (4, 4) transforms are one symmetry: within
+    (``merge_deg``, ``merge_mm``) of each other, or ``B^-1 A`` a member of one of the
+    ``continuous`` families."""
+
+    def same(A: np.ndarray, B: np.ndarray) -> bool:
+        if _close(A, B, merge_deg, merge_mm):
             return True
         rel = np.linalg.inv(B) @ A
-        return any(_in_family(rel, fam, p.merge_deg, merge_mm) for fam in continuous)
+        return any(_in_family(rel, fam, merge_deg, merge_mm) for fam in continuous)
 
+    return same
+
+
+def _discrete_group(surf: _Surface, acc_T: list[np.ndarray], acc_s: list[float], c: np.ndarray,
+                    continuous: list[dict[str, np.ndarray]], same: Callable[[np.ndarray, np.ndarray], bool],
+                    p: SymmetryParams, thr: float) -> tuple[list[np.ndarray], list[float]]:
+    """Method step 7: (group, scores mm): the identity first, then the accepted
+    transforms that are distinct modulo the families (lowest score first; none beside
+    two families), closed under composition: for up to four rounds the new products
+    are refined (rigid ICP), re-expressed about ``c`` and added when they score below
+    ``thr`` mm, until none is added or the group would exceed ``p.max_group``."""
     group: list[np.ndarray] = [np.eye(4)]
     group_s: list[float] = [0.0]
     for T, s in sorted(zip(acc_T, acc_s), key=lambda x: x[1]) if len(continuous) < 2 else []:
-        if not any(_same(T, U) for U in group):
+        if not any(same(T, U) for U in group):
             group.append(T)
             group_s.append(float(s))
     for _ in range(4):
@@ -724,7 +776,7 @@ def estimate_symmetries(
         for A in group:
             for B in group:
                 AB = A @ B
-                if not any(_same(AB, U) for U in group + new):
+                if not any(same(AB, U) for U in group + new):
                     new.append(AB)
         if not new or len(group) + len(new) > p.max_group:
             break
@@ -733,41 +785,41 @@ def estimate_symmetries(
         cs = surf.score(cand)
         added = False
         for T, s in zip(cand, cs):
-            if s <= thr and not any(_same(T, U) for U in group):
+            if s <= thr and not any(same(T, U) for U in group):
                 group.append(T)
                 group_s.append(float(s))
                 added = True
         if not added:
             break
+    return group, group_s
+
+
+def _discrete_representatives(group: list[np.ndarray], continuous: list[dict[str, np.ndarray]]) -> list[np.ndarray]:
+    """The discrete symmetries of ``group`` (identity first, dropped): with one continuous
+    family, each coset's representative (:func:`_coset_rep`). Numerical dust (entries
+    below 1e-12) is zeroed and the last row set to (0, 0, 0, 1), in place: without a
+    family the returned transforms are ``group``'s own."""
     discrete = group[1:]
     if len(continuous) == 1:
         discrete = [_coset_rep(D, continuous[0]) for D in discrete]
-    # Clean numerical dust.
     for T in discrete:
         T[np.abs(T) < 1e-12] = 0.0
         T[3] = [0.0, 0.0, 0.0, 1.0]
+    return discrete
 
-    # Near-symmetries, one per coset of the group: a near-symmetry composed with a
-    # symmetry looks the same to any verification, so one of them is enough.
+
+def _near_symmetries(near_T: list[np.ndarray], near_s: list[float], group: list[np.ndarray],
+                     same: Callable[[np.ndarray, np.ndarray], bool], max_near: int) -> list[tuple[np.ndarray, float]]:
+    """Up to ``max_near`` near-symmetries [(T (4, 4), score mm)], lowest score first, one
+    per coset of the group: a near-symmetry composed with a symmetry looks the same to
+    any verification, so one of them is enough."""
     near: list[tuple[np.ndarray, float]] = []
     for T, s in zip(near_T, near_s):
-        if len(near) >= p.max_near:
+        if len(near) >= max_near:
             break
-        if any(_same(T, U @ N) or _same(T, N @ U) for U in group for N in [np.eye(4)] + [n for n, _ in near]):
+        if any(same(T, U @ N) or same(T, N @ U) for U in group for N in [np.eye(4)] + [n for n, _ in near]):
             continue
         T = T.copy()
         T[3] = [0.0, 0.0, 0.0, 1.0]
         near.append((T, float(s)))
-
-    if details is not None:
-        details.update(
-            near=near,
-            centre=c,
-            accepted=list(zip(acc_T, acc_s)),
-            group_scores=group_s[1:],
-            rejected_best=rejected_best,
-            threshold_mm=thr,
-            seconds=time.perf_counter() - t_start,
-            n_candidates=len(init),
-        )
-    return SymmetrySet(discrete=discrete, continuous=continuous)
+    return near

@@ -2,7 +2,8 @@
 
 A pose is a pair ``(R (3, 3) float64, t (3,) float64 mm)`` that maps model points to
 camera points: ``x_c = R @ x_m + t``. Functions accept anything array-like and return
-float64 arrays; point arrays keep their dtype.
+float64 arrays. (Helpers only the tests use, such as composing poses or drawing a random
+rotation, live in ``tests/pose_helpers.py``.)
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def rt_to_matrix(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -36,25 +36,6 @@ def invert(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R.T.copy(), -R.T @ t
 
 
-def compose(
-    R_ab: np.ndarray, t_ab: np.ndarray, R_bc: np.ndarray, t_bc: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pose a->c from a->b followed by b->c: ``x_c = R_bc (R_ab x_a + t_ab) + t_bc``."""
-    R_ab = np.asarray(R_ab, dtype=np.float64).reshape(3, 3)
-    R_bc = np.asarray(R_bc, dtype=np.float64).reshape(3, 3)
-    t_ab = np.asarray(t_ab, dtype=np.float64).reshape(3)
-    t_bc = np.asarray(t_bc, dtype=np.float64).reshape(3)
-    return R_bc @ R_ab, R_bc @ t_ab + t_bc
-
-
-def transform_points(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Apply a pose to points (N, 3); returns (N, 3) in the dtype of ``points``."""
-    pts = np.asarray(points)
-    out = pts.astype(np.float64) @ np.asarray(R, dtype=np.float64).reshape(3, 3).T
-    out += np.asarray(t, dtype=np.float64).reshape(1, 3)
-    return out.astype(pts.dtype if pts.dtype.kind == "f" else np.float64)
-
-
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle in degrees of the relative rotation ``R_a^T R_b`` (geodesic distance)."""
     R_rel = np.asarray(R_a, dtype=np.float64).reshape(3, 3).T @ np.asarray(R_b, dtype=np.float64).reshape(3, 3)
@@ -63,12 +44,6 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     sin = 0.5 * np.linalg.norm([R_rel[2, 1] - R_rel[1, 2], R_rel[0, 2] - R_rel[2, 0], R_rel[1, 0] - R_rel[0, 1]])
     cos = 0.5 * (np.trace(R_rel) - 1.0)
     return float(np.degrees(np.arctan2(sin, cos)))
-
-
-def random_rotation(rng: np.random.Generator | int | None = None) -> np.ndarray:
-    """Uniformly distributed rotation (3, 3) float64 over SO(3)."""
-    rng = np.random.default_rng(rng)
-    return Rotation.random(random_state=rng).as_matrix()
 
 
 def rotation_about_axis(axis: np.ndarray, angle_deg: float) -> np.ndarray:
