@@ -177,7 +177,11 @@ rule bop_all:
     schedules only the jobs its targets need, and an existing score would otherwise keep
     an item that `freeze verify --repair` deleted upstream from being rebuilt. A rebuilt
     item is newer than its dependents' outputs, so they rerun too (Snakemake's mtime
-    trigger), and give the same results from the same inputs."""
+    trigger), and give the same results from the same inputs.
+
+    The default target (`snakemake` and `freeze run` without one): the stage rules are
+    defined above it, in the main Snakefile, so it is not the first rule."""
+    default_target: True
     input:
         [str(p) for p in planned_manifests(PLAN, DATASETS)],
     params:

@@ -47,13 +47,12 @@ def sar_outcomes(plan) -> dict[str, int]:
     """How SAR's changes compare with the ground truth (see the module docstring)."""
     from pipeline.method.geometry.transforms import rotation_angle_deg
     from pipeline.workflow.plan import parse_item
-    from pipeline.common.store import read_table
 
     bop = plan.bop()
     infos = bop.models_info()
     out = {"sar_runs": 0, "changed": 0, "fixed": 0, "broke": 0}
     for item in plan.scene_items:
-        sar = read_table(plan["refine"].item_dir(item) / "sar.parquet")
+        sar = plan["refine"].table(item, "sar")
         if sar.empty:
             continue
         gt = bop.scene_gt(parse_item(item)[1])
@@ -69,7 +68,8 @@ def sar_outcomes(plan) -> dict[str, int]:
             t0 = np.asarray(g.t.iloc[0], float)
             inst = min((x for x in gt[int(im_id)] if x.obj_id == obj_id), key=lambda x: np.linalg.norm(x.t - t0))
             before = rotation_angle_deg(np.asarray(g.R.iloc[0], float).reshape(3, 3), inst.R)
-            after = rotation_angle_deg(np.asarray(g.R.iloc[k], float).reshape(3, 3), inst.R)
+            # variants are numbered over the symmetries, and SAR scores only some: by number, not position
+            after = rotation_angle_deg(np.asarray(g[g.variant == k].R.iloc[0], float).reshape(3, 3), inst.R)
             if after < before - 10:
                 out["fixed"] += 1
             elif after > before + 10:
@@ -88,7 +88,6 @@ def ranking_outcomes(plan) -> tuple[int, dict[str, float]]:
     correct one first: (number of such targets, {ranking: fraction})."""
     from pipeline.evaluation.metrics.bop_symmetries import model_symmetries
     from pipeline.workflow.plan import parse_item
-    from pipeline.common.store import read_table
 
     bop = plan.bop()
     infos = bop.models_info()
@@ -102,7 +101,7 @@ def ranking_outcomes(plan) -> tuple[int, dict[str, float]]:
 
     frames = []
     for item in plan.scene_items:
-        c = read_table(plan["refine"].item_dir(item) / "candidates.parquet")
+        c = plan["refine"].table(item, "candidate_choices")
         gt = bop.scene_gt(parse_item(item)[1])
         c["ok"] = [min(mssd(r.obj_id, np.asarray(r.R).reshape(3, 3), np.asarray(r.t), g.R, g.t)
                        for g in gt[r.im_id] if g.obj_id == r.obj_id) < 0.2 * infos[r.obj_id].diameter

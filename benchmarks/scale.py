@@ -109,9 +109,7 @@ def chain(item: str, dataset: str, run: Path | None, extra: dict[str, object]) -
 
 def targets_of(plan, item: str) -> tuple[int, int]:
     """(targets, candidates) of a scene item, from its scene_features artifact."""
-    from pipeline.common.store import read_table
-
-    cands = read_table(plan["scene_features"].item_dir(item) / "candidates.parquet")
+    cands = plan["scene_features"].table(item, "candidate_status")
     return int(cands[["im_id", "obj_id"]].drop_duplicates().shape[0]), int(len(cands))
 
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Rewrite the generated blocks of the docs from the stage declarations
 (pipeline/workflow/stage_docs.py: the stage table of docs/architecture.md, between its
-`<!-- stage-table:start -->` and `<!-- stage-table:end -->` lines).
+`<!-- stage-table:start -->` and `<!-- stage-table:end -->` lines, and the artifact list
+of docs/artifacts.md, between `<!-- artifact-list:start -->` and `<!-- artifact-list:end -->`).
 
     .venv/bin/python scripts/update_docs.py            # rewrite what is out of date
     .venv/bin/python scripts/update_docs.py --check    # exit 1 if something is

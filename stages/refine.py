@@ -2,15 +2,15 @@
 the choice of the estimates per target, symmetry-aware refinement (SAR), and (item
 ``all``) the BOP results CSV ``<method>_<dataset>-<split>.csv`` of the whole dataset.
 
-Per scene (algorithm: :func:`pipeline.method.scene_side.refine_candidates`,
-:func:`~pipeline.method.scene_side.choose_estimates`, :func:`~pipeline.method.scene_side.refine_by_symmetry`):
+Per scene (algorithm: :meth:`pipeline.method.estimator.Estimator.refine`, then
+:meth:`~pipeline.method.estimator.Estimator.refine_by_symmetry`; every column: ``docs/artifacts.md``):
 
 - ``hypotheses.parquet``: every hypothesis after ICP (register's, and the turns of each
   candidate's best one, source ``turn`` with its ``parent``): its pose, ICP fitness and
   inlier_rmse (mm), the RANSAC n_inliers and inlier_ratio, ``evidence`` (inlier ratio x
   ICP fitness), the verification terms (silhouette, depth_fit, coverage, free_space)
   and score (``verification``), and ``chosen`` (its candidate's best).
-- ``candidates.parquet``: every registered candidate with its chosen hypothesis (hyp,
+- ``candidate_choices.parquet``: every registered candidate with its chosen hypothesis (hyp,
   source), its pose after the fine ICP (``fine_icp``: whether that pose was kept), the
   same columns, prior_score, and the choice: selected, rank (0 = best kept), note (why
   not kept).
@@ -22,7 +22,7 @@ Per scene (algorithm: :func:`pipeline.method.scene_side.refine_candidates`,
   and sar_reason (why SAR did not run, if it did not).
 - ``sar.parquet``: per estimate that went through SAR, one row per symmetric variant
   with its pose, similarity and whether it was chosen.
-- ``images.parquet``: this stage's time per image (s).
+- ``image_times.parquet``: this stage's time per image (s).
 
 The CSV's ``time`` is, per image, the prior's time plus this pipeline's scene-side time
 (scene_features + register + refine) for that image, in seconds (BOP: the time to
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import pandas as pd
 
-from pipeline.common.store import load_arrays, read_table, write_table
 from pipeline.workflow.plan import DatasetPlan
 
 THREADS_HELP = False
@@ -62,11 +61,11 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     im_ids = io.images()  # the scene's, or this chunk's (images_per_job)
     targets = [t for t in bop.targets(plan.root / plan.dataset.targets_file)
                if t.scene_id == scene_id and t.im_id in im_ids]
-    registered = read_table(io.input_dir("register") / "candidates.parquet")
+    registered = io.table("register", "coarse_hypotheses")
     registered = registered[registered.status == "ok"]
-    scene = load_arrays(io.input_dir("scene_features") / "features.zarr", ["points", "n_points", "cand_id"])
+    scene = io.arrays("scene_features", "features", names=["points", "n_points", "cand_id"])
     pos = {int(c): i for i, c in enumerate(scene["cand_id"])}
-    boxes = read_table(io.input_dir("segment_prior") / "candidates.parquet")
+    boxes = io.table("segment_prior", "prior_candidates")
     boxes = boxes[boxes.scene_id == scene_id].set_index("cand_id")
     cams = bop.scene_camera(scene_id)
 
@@ -89,11 +88,11 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     with io.publish() as w:
         if refined.sar_encoder is not None:  # SAR's encoder passes: where and in what precision (recorded, not keyed)
             w.manifest["runtime"] = {"visual": encoder_runtime(refined.sar_encoder)}
-        write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
-        write_table(refined.hypotheses, w.dir / "hypotheses.parquet", metadata={"key": io.out.key})
-        write_table(poses, w.dir / "poses.parquet", metadata={"key": io.out.key})
-        write_table(refined.sar, w.dir / "sar.parquet", metadata={"key": io.out.key})
-        write_table(time_table(scene_id, refined.image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
+        w.write("candidate_choices", table)
+        w.write("hypotheses", refined.hypotheses)
+        w.write("poses", poses)
+        w.write("sar", refined.sar)
+        w.write("image_times", time_table(scene_id, refined.image_time))
         w.summary.update({
             "scene_id": scene_id, "n_candidates": int(len(table)), "n_hypotheses": int(len(refined.hypotheses)),
             "n_poses": int(len(poses)),
@@ -113,18 +112,17 @@ def _collect(plan: DatasetPlan) -> None:
     io = plan.io("refine", "all")
     poses, times = [], []
     for item in plan.scene_items:
-        poses.append(read_table(io.input_dir("refine", item) / "poses.parquet"))
-        times.extend(read_table(io.input_dir(stage, item) / "images.parquet")
-                     for stage in stages_writing("images.parquet", "scene"))
+        poses.append(io.table("refine", "poses", item))
+        times.extend(io.table(stage, "image_times", item) for stage in stages_writing("image_times", "scene"))
     poses = pd.concat(poses, ignore_index=True) if poses else pd.DataFrame(columns=POSE_COLUMNS)
-    prior = read_table(io.input_dir("segment_prior") / "candidates.parquet")
+    prior = io.table("segment_prior", "prior_candidates")
     per_image = image_times(times, prior.groupby(["scene_id", "im_id"]).prior_time.first())
     rows = estimates_rows(poses, per_image)
     notes = [] if rows else [_no_estimate_note(io, plan)]
     for note in notes:
         print(f"warning: {plan.name}: {note}", flush=True)
     with io.publish() as w:
-        write_results_csv(w.dir / plan.results_csv_name, rows)
+        write_results_csv(w.path("results"), rows)
         w.summary.update({"results_csv": plan.results_csv_name, "n_estimates": len(rows),
                           "n_images": int(per_image.size),
                           "mean_time_per_image_s": float(per_image.mean()) if per_image.size else None,

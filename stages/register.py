@@ -2,13 +2,13 @@
 each modality's own matches, on the paper's fused matches and on the matches fused with
 each modality's measured weight.
 
-``candidates.parquet``: one row per hypothesis (a skipped candidate: one row with its
+``coarse_hypotheses.parquet``: one row per hypothesis (a skipped candidate: one row with its
 status and reason): cand_id, hyp (0, 1, ...), source (geometric, visual, fused,
 weighted), source_rank, the candidate's fusion weights w_geometric, w_visual and the
 held-out signals (z-scores) they came from, signal_geometric, signal_visual, the RANSAC
 pose (R as 9 row-major floats, t mm), n_inliers, inlier_ratio, fitness,
 n_correspondences, time_s (the candidate's, on its first row).
-``images.parquet``: registration time per image (s).
+``image_times.parquet``: registration time per image (s).
 ``pca.zarr``: the per-object PCA bases used (obj_id (K,), mean (K, C), components
 (K, V, C), explained_variance (K, V), informative (K,) bool: False when the visual
 features carried no variance and the visual part was dropped); empty in geometry-only
@@ -21,7 +21,6 @@ The candidates go to the dask cluster the run names (``dask_scheduler``, else
 
 from __future__ import annotations
 
-from pipeline.common.store import load_arrays, read_table, save_arrays, write_table
 from pipeline.workflow.plan import DatasetPlan
 
 THREADS_HELP = True
@@ -40,8 +39,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
 
     io = plan.io("register", item)
     scene_id, p = io.item_id(), io.params
-    scene = load_arrays(io.input_dir("scene_features") / "features.zarr")
-    cands = read_table(io.input_dir("scene_features") / "candidates.parquet")
+    scene = io.arrays("scene_features", "features")
+    cands = io.table("scene_features", "candidate_status")
     # no encoder: registration matches the features both sides already hold
     estimator = Estimator(prepared_objects(io, io.bop(), features=()), plan.run.stages)
     with progress_bar(f"register {item}", total=len(cands), enabled=progress) as bar, \
@@ -50,8 +49,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                                         bar.advance, mapper)
     table = registered.table
     with io.publish() as w:
-        write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
-        write_table(time_table(scene_id, registered.image_time), w.dir / "images.parquet", metadata={"key": io.out.key})
-        save_arrays(w.dir / "pca.zarr", registered.pca, attrs={"key": io.out.key, "pca_dim": p.pca_dim})
+        w.write("coarse_hypotheses", table)
+        w.write("image_times", time_table(scene_id, registered.image_time))
+        w.write("pca", registered.pca, attrs={"pca_dim": p.pca_dim})
         w.summary.update({"scene_id": scene_id, "n_candidates": int(len(table)),
                           "n_registered": int((table.status == "ok").sum())})

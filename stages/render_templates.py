@@ -9,7 +9,6 @@ R (R, 3, 3), t (R, 3) mm (model-to-camera). Algorithm:
 from __future__ import annotations
 
 from pipeline.workflow.plan import DatasetPlan
-from pipeline.common.store import save_arrays
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
@@ -21,7 +20,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     info = plan.model_info(bop, obj_id)
     arrays = render_object_templates(bop.load_model(obj_id), info.diameter, p, image_mode=plan.dataset.image_mode)
     with io.publish() as w:
-        save_arrays(w.dir / "templates.zarr", arrays, attrs={"key": io.out.key, "obj_id": obj_id, "diameter": info.diameter})
+        w.write("templates", arrays, attrs={"obj_id": obj_id, "diameter": info.diameter})
         w.summary.update({"obj_id": obj_id, "n_views": p.n_views, "image_size": p.image_size,
                           "diameter_mm": info.diameter, "image_mode": plan.dataset.image_mode,
                           "mean_mask_fraction": float(arrays["mask"].mean())})

@@ -4,8 +4,9 @@
 ``features.zarr`` (C = candidates of the scene, M = ``scene_features.n_points``):
 points (C, M, 3) float32 mm camera frame, pixels (C, M, 2) int32 (u, v), geometric
 (C, M, G) and visual (C, M, V) float32 (NaN beyond n_points), n_points (C,) int32,
-cand_id (C,) int64. ``candidates.parquet``: every candidate of the scene with status
-``ok`` or ``skipped`` and the reason. ``images.parquet``: processing time per image (s).
+cand_id (C,) int64. ``candidate_status.parquet``: every candidate of the scene with status
+``ok`` or ``skipped`` and the reason. ``image_times.parquet``: processing time per image (s).
+(Every column and array: ``docs/artifacts.md``.)
 Algorithm: :meth:`pipeline.method.estimator.Estimator.scene_features`
 (:func:`pipeline.method.scene_side.scene_features`).
 """
@@ -18,7 +19,6 @@ import numpy as np
 import pandas as pd
 
 from pipeline.workflow.plan import DatasetPlan, build_encoders, encoder_runtime
-from pipeline.common.store import read_table, save_arrays, write_table
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
@@ -32,7 +32,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     bop = io.bop()
     infos = bop.models_info()
     cams = bop.scene_camera(scene_id)
-    cands = read_table(io.input_dir("segment_prior") / "candidates.parquet")
+    cands = io.table("segment_prior", "prior_candidates")
     cands = cands[(cands.scene_id == scene_id) & cands.im_id.isin(io.images())].sort_values("cand_id")
     estimator = Estimator({o: PreparedObject(o, i.diameter) for o, i in infos.items()}, plan.run.stages,
                           build_encoders(plan.run))
@@ -67,14 +67,11 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     with io.publish() as w:
         # where the encoders ran and in what precision: recorded, not keyed
         w.manifest["runtime"] = {"geometric": encoder_runtime(geo_enc), "visual": encoder_runtime(vis_enc)}
-        save_arrays(
-            w.dir / "features.zarr", pack_candidates(ordered, p.n_points, geo_enc.dim, vis_enc.dim),
-            chunks={"n_points": (max(1, n),), "cand_id": (max(1, n),)},
-            attrs={"key": io.out.key, "scene_id": scene_id,
-                   "geometric_encoder": geo_enc.signature(), "visual_encoder": vis_enc.signature()},
-        )
-        write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key})
-        write_table(pd.DataFrame(image_rows, columns=["scene_id", "im_id", "n_candidates", "time_s"]),
-                    w.dir / "images.parquet", metadata={"key": io.out.key})
+        w.write("features", pack_candidates(ordered, p.n_points, geo_enc.dim, vis_enc.dim),
+                chunks={"n_points": (max(1, n),), "cand_id": (max(1, n),)},
+                attrs={"scene_id": scene_id, "geometric_encoder": geo_enc.signature(),
+                       "visual_encoder": vis_enc.signature()})
+        w.write("candidate_status", table)
+        w.write("image_times", pd.DataFrame(image_rows, columns=["scene_id", "im_id", "n_candidates", "time_s"]))
         w.summary.update({"scene_id": scene_id, "n_candidates": n, "n_ok": sum(f.ok for f in ordered),
                           "skipped": {str(f.cand_id): f.reason for f in ordered if not f.ok}})

@@ -48,7 +48,7 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
             why = ("the test ground truth of this dataset is not public" if not plan.dataset.public_gt
                    else f"{len(missing)} target scene(s) have no scene_gt.json (first: {missing[0]})")
             summary = unscored_summary(csv, bop.targets(plan.root / plan.dataset.targets_file), why)
-            (w.dir / "scores.json").write_text(json.dumps({"summary": summary}, indent=1) + "\n")
+            w.path("scores").write_text(json.dumps({"summary": summary}, indent=1) + "\n")
             w.summary.update(summary)
             return
         with job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:

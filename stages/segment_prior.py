@@ -1,6 +1,6 @@
-"""Stage segment_prior: ingest BOP/CNOS detections JSON files -> ``candidates.parquet``.
+"""Stage segment_prior: ingest BOP/CNOS detections JSON files -> ``prior_candidates.parquet``.
 
-One row per kept candidate mask: cand_id, scene_id, im_id, obj_id, score, bbox
+One row per kept candidate mask: cand_id, scene_id, im_id, obj_id, prior_score, bbox
 (x, y, w, h px), area (mask pixels), height, width, rle_counts (uncompressed COCO RLE,
 column-major, starting with background), det_index (position in the prior file, or
 in the merged list when several files are merged), prior_time (s, the detector's time
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from pipeline.formats.bop.errors import BopFormatError
 from pipeline.workflow.plan import DatasetPlan
-from pipeline.common.store import write_table
 
 
 def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
@@ -44,5 +43,5 @@ def run(plan: DatasetPlan, item: str = "all", progress: bool = True) -> None:
                                  "scoring them, set 'public_gt: false' in the dataset's manifest)")
     table, report = candidates_from_priors(io.prior_paths, targets, bop.obj_ids(), io.params)
     with io.publish() as w:
-        write_table(table, w.dir / "candidates.parquet", metadata={"key": io.out.key, "stage": "segment_prior"})
+        w.write("prior_candidates", table, metadata={"stage": "segment_prior"})
         w.summary.update(report)

@@ -32,5 +32,5 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                              sample_seed=io.seed(item, p.seed), threshold=p.threshold, seed=p.seed,
                              declared=SymmetrySet.from_model_info(info), obj_id=obj_id)
     with io.publish() as w:
-        (w.dir / "symmetries.json").write_text(json.dumps(doc, indent=1) + "\n")
+        w.path("symmetries").write_text(json.dumps(doc, indent=1) + "\n")
         w.summary.update({k: doc[k] for k in ("obj_id", "n_discrete", "n_continuous", "threshold_mm", "rejected_best_mm")})

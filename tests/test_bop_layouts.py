@@ -149,11 +149,10 @@ def test_datasets_check_names_layout_differences(layouts, tmp_path):
 
 
 def _candidates(plan) -> pd.DataFrame:
-    from pipeline.common.store import read_table
     from stages import segment_prior
 
     segment_prior.run(plan, "all", progress=False)
-    return read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet")
+    return plan["segment_prior"].table("all", "prior_candidates")
 
 
 def test_segment_prior_merges_priors_and_maps_category_ids(layouts, tmp_path):

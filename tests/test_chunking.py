@@ -62,7 +62,7 @@ def test_a_scene_cut_into_one_image_jobs_gives_the_same_estimates_and_ar(tiny_ru
     refine = current_dir(tmp_path, "refine")
     assert sorted(p.name for p in refine.glob("scene_*")) == ["scene_000001-000", "scene_000001-001"]
     for k in range(2):  # each chunk job saw only its image, with the threads its rule declares
-        table = pd.read_parquet(refine / f"scene_000001-00{k}" / "candidates.parquet")
+        table = pd.read_parquet(refine / f"scene_000001-00{k}" / "candidate_choices.parquet")
         assert set(table.im_id) == {k}
         for stage in ("scene_features", "refine"):
             manifest = json.loads((current_dir(tmp_path, stage) / f"scene_000001-00{k}" / "_manifest.json").read_text())

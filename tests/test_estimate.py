@@ -182,7 +182,7 @@ def test_cli_writes_pose_overlay_and_stage_artifacts(case, tmp_path, monkeypatch
     feats = load_arrays(out / "scene_features" / "features.zarr")
     assert feats["points"].shape[0] == 1 and feats["n_points"][0] == 1000
     assert load_arrays(out / "model_features" / "features.zarr", ["points"])["points"].shape == (2000, 3)
-    reg = read_table(out / "register" / "candidates.parquet")
+    reg = read_table(out / "register" / "coarse_hypotheses.parquet")
     registered = rec["hypothesis"]["parent"] if rec["hypothesis"]["source"] == "turn" else rec["hypothesis"]["index"]
     assert reg[reg.hyp == registered].n_inliers.iloc[0] == rec["n_inliers"]
     # register's hypotheses, then refine's turns of the best one

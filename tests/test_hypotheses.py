@@ -100,7 +100,7 @@ def test_refine_picks_each_candidates_best_verified_hypothesis():
         for hyp in range(3):
             rows.append({"cand_id": cand_id, "scene_id": 1, "im_id": 0, "obj_id": 1, "prior_score": 0.9, "hyp": hyp,
                          "source": ["geometric", "visual", "fused"][hyp], "n_inliers": 10, "inlier_ratio": 0.1,
-                         "R": np.eye(3).ravel().tolist(), "t": [0.0, 0.0, 500.0 + 10 * hyp], "fitness": 0.9})
+                         "R": np.eye(3).ravel().tolist(), "t": [0.0, 0.0, 500.0 + 10 * hyp], "ransac_fitness": 0.9})
     registered = pd.DataFrame(rows)
     scores = {(0, 510.0): 0.8, (1, 500.0): 0.7}  # candidate 0: hypothesis 1; candidate 1: hypothesis 0
 
@@ -162,7 +162,7 @@ def test_verification_prefers_the_true_pose_over_its_flip(rendered_frame):
         t_f = f["t"] + f["R"] @ centre - R_f @ centre
         flipped = verify_pose(renderer, 1, R_f, t_f, f["K"], f["depth"], f["mask"], window, tol)
     assert true.silhouette > 0.98 and true.depth_fit > 0.98 and true.coverage > 0.98 and true.free_space < 0.01
-    assert flipped.score < true.score - 0.2
+    assert flipped.value < true.value - 0.2
     assert flipped.depth_fit < 0.8 and flipped.silhouette < true.silhouette
 
 
@@ -182,7 +182,7 @@ def test_occluders_are_neither_evidence_for_nor_against_a_pose():
     assert v.coverage == 1.0  # every mask pixel with depth is explained
     # the same pose one object-length too close: it stands in front of the wall
     v2 = compare_depth(np.where(rendered > 0, 200.0, 0).astype(np.float32), observed, mask, tol=10.0)
-    assert v2.free_space == 1.0 and v2.depth_fit == 0.0 and v2.score < v.score - 1.0
+    assert v2.free_space == 1.0 and v2.depth_fit == 0.0 and v2.value < v.value - 1.0
 
 
 def test_coherent_but_wrong_matches_lose_to_the_stronger_modality():
@@ -205,7 +205,7 @@ def test_coherent_but_wrong_matches_lose_to_the_stronger_modality():
                             RegisterParams(), seed=0)
     assert not res.agree and res.signal_visual > 6  # the visual matches pass their own test
     assert (res.w_geometric, res.w_visual) == (1.0, 0.0)
-    by_source = {h.source: h.registration for h in res.hypotheses if h.rank == 0}
+    by_source = {h.source: h.registration for h in res.hypotheses if h.source_rank == 0}
     assert rotation_angle_deg(by_source["geometric"].R, R) < 1.0
     assert rotation_angle_deg(by_source["visual"].R, R) > 170.0  # the flip
     assert by_source["geometric"].n_inliers > 3 * by_source["visual"].n_inliers
@@ -286,7 +286,7 @@ def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wr
     R0, t0 = turned(f["R"], f["t"], half)
     registered = pd.DataFrame([{"cand_id": 0, "scene_id": 1, "im_id": 0, "obj_id": 1, "prior_score": 0.9, "hyp": 0,
                                 "source": "fused", "n_inliers": 50, "inlier_ratio": 0.05, "R": R0.ravel().tolist(),
-                                "t": t0.tolist(), "fitness": 0.5}])
+                                "t": t0.tolist(), "ransac_fitness": 0.5}])
     ys, xs = np.nonzero(f["mask"])
     bbox = (xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
     images = SceneImages(rgb=lambda i: None, depth=lambda i: f["depth"], K=lambda i: f["K"], mesh=lambda o: mesh,

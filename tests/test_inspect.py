@@ -95,7 +95,7 @@ def store(tmp_path_factory):
         save_arrays(w.dir / "features.zarr", {"cand_id": np.array(CAND_IDS, np.int64), "n_points": np.array(N_POINTS, np.int32),
                                               "points": points, "geometric": geo, "visual": vis},
                     attrs={"key": plan["scene_features"].key, "scene_id": 1})
-        write_table(pd.DataFrame({"cand_id": CAND_IDS, "score": [0.9, None, None]}), w.dir / "candidates.parquet",
+        write_table(pd.DataFrame({"cand_id": CAND_IDS, "prior_score": [0.9, None, None]}), w.dir / "candidate_status.parquet",
                     metadata={"key": "0" * 40})  # deliberately not this artifact's key
     with item("register", "scene_000001") as w:
         table = pd.DataFrame({
@@ -103,7 +103,7 @@ def store(tmp_path_factory):
             "status": ["ok", "ok", "skipped"], "reason": ["", "", "too few points"],
             "R": [R.reshape(9).tolist(), np.eye(3).reshape(9).tolist(), None],
             "t": [t.tolist(), t.tolist(), None], "n_inliers": [50, 3, None]})
-        write_table(table, w.dir / "candidates.parquet", metadata={"key": plan["register"].key})
+        write_table(table, w.dir / "coarse_hypotheses.parquet", metadata={"key": plan["register"].key})
     return {"cache": cache, "plan": plan, "model": model, "idx": idx, "R": R, "t": t}
 
 
@@ -141,7 +141,7 @@ def test_inspect_reports_tables_manifest_and_upstream_chain(store):
     (table,) = info["parquet"]
     assert table["rows"] == 3 and table["row_groups"] == 1
     cols = {c["name"]: c for c in table["columns"]}
-    assert cols["score"]["type"] == "double" and cols["score"]["null_count"] == 2
+    assert cols["prior_score"]["type"] == "double" and cols["prior_score"]["null_count"] == 2
     assert table["key_matches"] is False  # written with another key on purpose
 
     info = inspect_artifact(plan["register"].item_dir("scene_000001"))
@@ -184,7 +184,7 @@ def test_inspect_json_command_and_sub_paths(store):
     assert result.exit_code == 0, result.output
     for text in ("model_features", plan["model_features"].signature, "render_templates", "geometric", "200x8"):
         assert text in result.stdout
-    info = inspect_artifact(plan["scene_features"].item_dir("scene_000001") / "candidates.parquet")
+    info = inspect_artifact(plan["scene_features"].path("scene_000001", "candidate_status"))
     assert not info["zarr"] and info["parquet"][0]["rows"] == 3
 
 

@@ -131,7 +131,7 @@ def test_geometry_only_and_vision_only_runs(tiny_run):
     assert (feats["view_count"] > 0).mean() > 0.9  # visibility is still computed
     pca = load_arrays(next((cache / "register").glob("fpfh-ms+novis-*/scene_000001/pca.zarr")))
     assert len(pca["obj_id"]) == 0
-    geo_only = read_table(next((cache / "register").glob("fpfh-ms+novis-*/scene_000001/candidates.parquet")))
+    geo_only = read_table(next((cache / "register").glob("fpfh-ms+novis-*/scene_000001/coarse_hypotheses.parquet")))
 
     # Vision alone, as far as register (what the assertions below read): refine and score
     # ran above for geometry alone.
@@ -143,7 +143,7 @@ def test_geometry_only_and_vision_only_runs(tiny_run):
                   targets=tuple(str(vis_plan["register"].manifest(item)) for item in vis_plan.scene_items))
     feats = load_arrays(next((cache / "scene_features").glob("nogeo+colortex-*/scene_000001/features.zarr")))
     assert feats["geometric"].shape[2] == 0 and feats["visual"].shape[2] == 30
-    vis_only = read_table(next((cache / "register").glob("nogeo+colortex-*/scene_000001/candidates.parquet")))
+    vis_only = read_table(next((cache / "register").glob("nogeo+colortex-*/scene_000001/coarse_hypotheses.parquet")))
     pca = load_arrays(next((cache / "register").glob("nogeo+colortex-*/scene_000001/pca.zarr")))
     informative = dict(zip(pca["obj_id"].tolist(), pca["informative"].tolist()))
     # The grey hex nut's colour features carry nothing: vision alone finds no inlier for

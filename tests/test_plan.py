@@ -96,24 +96,45 @@ def test_short_encoder_keys_none_and_weights_dir(tmp_path):
 # basket's half turn) changed symmetries', refine's and score's (synthmini's AR stayed
 # 0.788). symmetries 2 (near-symmetries in the record) and refine 6 (the turns of each
 # candidate's best hypothesis, refine.turns) changed symmetries', refine's and score's;
-# images_per_job and the rules' threads and memory changed none.
+# images_per_job and the rules' threads and memory changed none. Issue 29 (artifacts with
+# one name each: candidates.parquet and images.parquet renamed per stage) bumped the code
+# versions of segment_prior (3 -> 4), scene_features (1 -> 2), register (5 -> 6) and
+# refine (8 -> 9), which changed their keys, and score's, which follows refine's; the
+# random draws come from the seed keys (StagePlan.seed_key), which are the keys before
+# issue 29 (MAIN_JOB_SEED_KEYS), so every value in every artifact stayed the same.
 MAIN_JOB_KEYS = {
     "synth": "42e22634980724b4b02cc270abefe72cd6af6e03",
     "render_templates": "4c687dcea59bf855850770f05da8aafca91cd386",
     "symmetries": "569ebc51646a54831def1fb2a67375cf63ccaa88",
     "model_features": "ed46f2a57508857849305f0fa7847a1bb0ad85fe",
+    "segment_prior": "4a14217dd176647e1b98d9ec86ec8a85f58ea295",
+    "scene_features": "af3ff781b440ad7c2e852f5269dc4d6ae7364a2a",
+    "register": "607d9ce2a11874799482e4c56618510af66f9291",
+    "refine": "c46b5039d913049aeb97583a2421f228ee968c62",
+    "score": "8b301da9b154d1a3a6964c5052ce5e8617be3482",
+}
+MAIN_JOB_SEED_KEYS = {
+    **MAIN_JOB_KEYS,
     "segment_prior": "cb98a60a90478c1373a838b74f1b032f44df3b57",
     "scene_features": "1fb7016d520a9e4c243b2714fd6d0fd53bc3c6e0",
     "register": "94255dac2bdc93f8b69cd94ffa44e7c966436302",
     "refine": "ce7d6010663c1119277b47600aa3f0f8b995f2cf",
     "score": "181e84ccb08d3b3edfdfed8343fee74e1f057617",
 }
+"""The main job's seed keys: the keys before issue 29 (which renamed files only)."""
 
 
 def test_main_job_keys_are_pinned():
     plan = RunPlan(cfg.load_run({}))["synthmini"]
     assert {s: sp.key for s, sp in plan.stages.items()} == MAIN_JOB_KEYS
-    assert plan["refine"].signature == "icp+sar-byverification-ce7d6010"
+    assert plan["refine"].signature == "icp+sar-byverification-c46b5039"
+
+
+def test_main_job_seed_keys_are_the_keys_before_the_renames():
+    """Issue 29 bumped code versions for file renames alone: the draws (and so every value
+    in every artifact) still come from the keys the stages had before."""
+    plan = RunPlan(cfg.load_run({}))["synthmini"]
+    assert {s: sp.seed_key for s, sp in plan.stages.items()} == MAIN_JOB_SEED_KEYS
 
 
 def test_renamed_values_keep_their_keys():

@@ -212,7 +212,7 @@ def test_select_estimates_keeps_distinct_instances_in_rank_order():
     diam = {7: 80.0, 9: 80.0}
     out = select_estimates(cands, targets, diam, by="evidence").set_index("cand_id")
     assert sorted(out.index[out.selected]) == [1, 2, 5]
-    assert out.loc[1, "rank"] == 0 and out.loc[2, "rank"] == 1
+    assert out.loc[1, "target_rank"] == 0 and out.loc[2, "target_rank"] == 1
     assert out.loc[0, "note"] == "duplicate of 1" and out.loc[3, "note"] == "beyond inst_count"
     assert out.loc[6, "note"] == "not a target" and out.loc[4, "note"] == "beyond inst_count"
     # the paper's rule (most inliers) and the prior's ranking choose differently
@@ -332,7 +332,7 @@ def test_batched_ransac_recovers_a_known_transform_from_correspondences_with_out
 @pytest.mark.parametrize("score", ["fitness", "inliers"])
 def test_ransac_hypotheses_scores_recover_the_pose(score):
     model, mf, scene, sf, R, t, n_good = _synthetic_problem(4, inlier_share=0.12)
-    params = RansacParams(inlier_frac=0.02, score=score)
+    params = RansacParams(inlier_frac=0.02, rank_by=score)
     hyps = ransac_hypotheses(model, mf, scene, sf, 250.0, params=params, seed=3, k=3)
     assert rotation_angle_deg(hyps[0].R, R) < 0.5 and np.linalg.norm(hyps[0].t - t) < 1.0
     assert hyps[0].fitness > 0.99 and n_good <= hyps[0].n_inliers <= n_good + 10

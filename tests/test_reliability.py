@@ -48,7 +48,7 @@ def _publish_item(folder: Path) -> Path:
     with publish(item, stage="register", item="scene_000001", key="k" * 40, signature="x-kkkkkkkk", params={},
                  upstream={}, code_version=1, dataset="d") as w:
         save_arrays(w.dir / "features.zarr", {"points": np.arange(3000, dtype=np.float32).reshape(10, 100, 3)})
-        write_table(pd.DataFrame({"a": [1, 2, 3]}), w.dir / "candidates.parquet")
+        write_table(pd.DataFrame({"a": [1, 2, 3]}), w.dir / "coarse_hypotheses.parquet")
     return item
 
 
@@ -58,7 +58,7 @@ def _publish_item(folder: Path) -> Path:
 def test_manifest_records_every_file_and_verify_names_the_damage(tmp_path):
     item = _publish_item(tmp_path)
     files = read_manifest(item)["files"]
-    assert "candidates.parquet" in files and any(k.startswith("features.zarr/points/") for k in files)
+    assert "coarse_hypotheses.parquet" in files and any(k.startswith("features.zarr/points/") for k in files)
     assert all(len(v["sha256"]) == 64 and v["size"] > 0 for v in files.values())
     assert verify_item(item) == []
     ensure_sound(item)
@@ -88,7 +88,7 @@ def test_verify_cache_repair_removes_damaged_items_and_leftovers(tmp_path):
     cache = tmp_path / "cache"
     good = _publish_item(cache / "d" / "register" / "sig-a")
     bad = _publish_item(cache / "d" / "register" / "sig-b")
-    (bad / "candidates.parquet").write_bytes(b"PAR1")
+    (bad / "coarse_hypotheses.parquet").write_bytes(b"PAR1")
     leftover = cache / "d" / "register" / "sig-a" / ".tmp-scene_000002-1234abcd"
     leftover.mkdir()
     assert verify_cache(cache).leftovers == []  # it may be a running job's
@@ -175,7 +175,7 @@ def test_a_killed_run_resumes_with_freeze_run_and_gives_the_clean_result(tiny_ru
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     assert "removed the lock" in out
-    for stage, name in (("refine", "poses.parquet"), ("register", "candidates.parquet")):
+    for stage, name in (("refine", "poses.parquet"), ("register", "coarse_hypotheses.parquet")):
         a = pd.read_parquet(current_dir(clean, stage) / "scene_000001" / name)
         b = pd.read_parquet(current_dir(work, stage) / "scene_000001" / name)
         pd.testing.assert_frame_equal(a.drop(columns=["time_s"], errors="ignore"),
@@ -238,7 +238,7 @@ def test_a_full_disk_is_one_line_naming_what_was_being_published(tmp_path, monke
                      upstream={}, code_version=1, dataset="d") as w:
             from pipeline.common import store
 
-            store.write_table(pd.DataFrame({"a": [1]}), w.dir / "candidates.parquet")
+            store.write_table(pd.DataFrame({"a": [1]}), w.dir / "coarse_hypotheses.parquet")
     assert read_manifest(item)["files"] == before and verify_item(item) == []
     assert [p.name for p in tmp_path.iterdir()] == ["scene_000001"]
 
@@ -279,9 +279,9 @@ def test_readers_name_the_damaged_file(tmp_path):
     from pipeline.common.store import load_arrays, read_table
 
     item = _publish_item(tmp_path)
-    table = item / "candidates.parquet"
+    table = item / "coarse_hypotheses.parquet"
     table.write_bytes(table.read_bytes()[:40])
-    with pytest.raises(DamagedArtifact, match=r"candidates.parquet: cannot read the Parquet table .*freeze verify"):
+    with pytest.raises(DamagedArtifact, match=r"coarse_hypotheses.parquet: cannot read the Parquet table .*freeze verify"):
         read_table(table)
     shutil.rmtree(item / "features.zarr" / "points")
     with pytest.raises(DamagedArtifact, match=r"features.zarr: no array 'points'"):

@@ -77,7 +77,7 @@ def make_item(item_dir: Path, *, dataset: str = "d") -> Path:
     with publish(item_dir, stage=stage, item=item, key=signature[-8:] * 5, signature=signature, params={},
                  upstream={}, code_version=1, dataset=dataset) as w:
         save_arrays(w.dir / "features.zarr", {"points": np.arange(300, dtype=np.float32).reshape(10, 10, 3)})
-        write_table(pd.DataFrame({"a": [1, 2, 3]}), w.dir / "candidates.parquet")
+        write_table(pd.DataFrame({"a": [1, 2, 3]}), w.dir / "coarse_hypotheses.parquet")
     return item_dir
 
 
@@ -145,7 +145,7 @@ def test_a_user_folder_survives_repair_and_is_reported(cache):
 def test_a_symlinked_signature_folder_is_not_followed_and_its_target_is_untouched(cache, tmp_path):
     outside = tmp_path / "outside"
     target = make_item(outside / "register" / "fpfh-dddddddd" / "scene_000001")
-    (target / "candidates.parquet").write_bytes(b"PAR1")  # damaged: a followed link would have it removed
+    (target / "coarse_hypotheses.parquet").write_bytes(b"PAR1")  # damaged: a followed link would have it removed
     old = outside / "register" / "fpfh-dddddddd" / ".tmp-scene_000002-1234abcd"
     old.mkdir()
     os.utime(old, (HOURS_AGO, HOURS_AGO))
@@ -154,7 +154,7 @@ def test_a_symlinked_signature_folder_is_not_followed_and_its_target_is_untouche
     item_link = cache / "d" / "register" / "fpfh-aaaaaaaa" / "scene_000009"
     item_link.symlink_to(target, target_is_directory=True)
     file_link = cache / "d" / "register" / "fpfh-aaaaaaaa" / "notes.parquet"
-    file_link.symlink_to(target / "candidates.parquet")
+    file_link.symlink_to(target / "coarse_hypotheses.parquet")
     before = snapshot(cache, outside)
     res = verify(cache, "--repair")
     assert res.exit_code == 0, res.output
@@ -167,7 +167,7 @@ def test_a_symlinked_signature_folder_is_not_followed_and_its_target_is_untouche
 def test_repair_removes_damaged_items_and_leftovers_and_nothing_else(cache):
     sig = cache / "d" / "register" / "fpfh-aaaaaaaa"
     bad = sig / "scene_000002"
-    (bad / "candidates.parquet").write_bytes(b"PAR1")  # a truncated table
+    (bad / "coarse_hypotheses.parquet").write_bytes(b"PAR1")  # a truncated table
     half = make_item(sig / "scene_000003")
     (half / MANIFEST_NAME).write_text('{"key": "kkk", "fil')  # a half-written manifest, in a signature folder
     bad5 = cache / "_estimate" / "model" / "model_features" / "fpfh-bbbbbbbb" / "obj_000001"
@@ -178,7 +178,7 @@ def test_repair_removes_damaged_items_and_leftovers_and_nothing_else(cache):
     old_tmp.mkdir()
     (old_tmp / "half.parquet").write_bytes(b"PAR")
     shutil.copytree(sig / "scene_000001", old_old)
-    old_file = sig / ".candidates.parquet.4567cdef.tmp"
+    old_file = sig / ".coarse_hypotheses.parquet.4567cdef.tmp"
     old_file.write_bytes(b"PAR")
     young = sig / ".tmp-scene_000006-fedcba98"  # a running job's, perhaps
     young.mkdir()
@@ -191,7 +191,7 @@ def test_repair_removes_damaged_items_and_leftovers_and_nothing_else(cache):
 
     res = verify(cache)
     assert res.exit_code == 1, res.output
-    assert f"damaged: {bad}: candidates.parquet is 4 bytes" in res.output
+    assert f"damaged: {bad}: coarse_hypotheses.parquet is 4 bytes" in res.output
     assert f"damaged: {half}: {MANIFEST_NAME} is not valid JSON" in res.output
     assert f"damaged: {bad5}: features.zarr/points" in res.output
     assert "3 damaged, 3 leftovers" in res.output and "run `freeze verify --repair`" in res.output
@@ -213,11 +213,11 @@ def test_repair_removes_damaged_items_and_leftovers_and_nothing_else(cache):
 
 def test_repair_on_a_read_only_cache_is_one_line_naming_the_item(cache, monkeypatch):
     bad = cache / "d" / "register" / "fpfh-aaaaaaaa" / "scene_000002"
-    (bad / "candidates.parquet").write_bytes(b"PAR1")
+    (bad / "coarse_hypotheses.parquet").write_bytes(b"PAR1")
     before = snapshot(cache)
 
     def read_only(path, *args, **kwargs):  # what the file system says at the first unlink
-        raise OSError(errno.EROFS, "Read-only file system", "candidates.parquet")
+        raise OSError(errno.EROFS, "Read-only file system", "coarse_hypotheses.parquet")
 
     monkeypatch.setattr("pipeline.commands.verify.shutil.rmtree", read_only)
     res = verify(cache, "--repair")
@@ -261,7 +261,7 @@ def read_only_view(tmp_path):
 
 
 def test_repair_on_a_real_read_only_mount_is_one_line(cache, read_only_view):
-    (cache / "d" / "register" / "fpfh-aaaaaaaa" / "scene_000002" / "candidates.parquet").write_bytes(b"PAR1")
+    (cache / "d" / "register" / "fpfh-aaaaaaaa" / "scene_000002" / "coarse_hypotheses.parquet").write_bytes(b"PAR1")
     before = snapshot(cache)
     ro = read_only_view(cache)
     res = verify(ro, "--repair")

@@ -205,7 +205,7 @@ def test_segment_prior_refuses_nan_ground_truth_at_the_start_of_a_run(lmo, tmp_p
     assert proc.returncode == 1, proc.stderr[-3000:]
     line = _one_line(proc.stdout + proc.stderr, str(path), "'cam_R_m2c'")
     assert "entry '1'[1]" in line and "public_gt: false" in line
-    assert not list((tmp_path / "cache").rglob("candidates.parquet"))  # nothing published
+    assert not list((tmp_path / "cache").rglob("prior_candidates.parquet"))  # nothing published
 
 
 # ------------------------------------------------------------------ degenerate models

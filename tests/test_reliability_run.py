@@ -161,7 +161,7 @@ def test_the_run_after_a_repair_rebuilds_what_it_removed_and_gives_the_clean_res
     assert "Traceback" not in out
     assert all((folder / MANIFEST_NAME).is_file() for folder in damaged)
     assert _ar(work) == _ar(clean)
-    for stage, name in (("scene_features", "candidates.parquet"), ("register", "candidates.parquet"),
+    for stage, name in (("scene_features", "candidate_status.parquet"), ("register", "coarse_hypotheses.parquet"),
                         ("refine", "poses.parquet")):
         a = pd.read_parquet(current_dir(clean, stage) / "scene_000001" / name)
         b = pd.read_parquet(current_dir(work, stage) / "scene_000001" / name)

@@ -356,13 +356,30 @@ def _png_ok(png: bytes) -> None:
 
 
 class _Stage:
-    """What the report reads of a stage plan: name, signature, folder, item folders."""
+    """What the report reads of a stage plan: name, signature, folder, item folders, and
+    the artifacts by name (their file names from the stage's declaration, as
+    :class:`pipeline.workflow.plan.StagePlan` has them)."""
 
     def __init__(self, root: Path, stage: str):
         self.stage, self.signature, self.dir = stage, f"{stage}-00000000", root / stage / f"{stage}-00000000"
 
     def item_dir(self, item: str) -> Path:
         return self.dir / item
+
+    def path(self, item: str, name: str) -> Path:
+        from pipeline.workflow.stage_graph import item_kind, spec
+
+        return self.item_dir(item) / spec(self.stage).artifact(name, item_kind(item)).file
+
+    def table(self, item: str, name: str) -> pd.DataFrame:
+        from pipeline.common.store import read_table
+
+        return read_table(self.path(item, name))
+
+    def arrays(self, item: str, name: str, names: list[str] | None = None) -> dict:
+        from pipeline.common.store import load_arrays
+
+        return load_arrays(self.path(item, name), names)
 
 
 class _Plan:
@@ -446,13 +463,13 @@ def _fake_run(tmp_path: Path, kind: str, monkeypatch) -> _RunPlan:
         refine.mkdir(parents=True)
         pd.DataFrame({"source": ["fused", "fused", "geometric"], "hyp": [0, 1, 0], "chosen": [True, False, False],
                       "verification": [NAN, INF, NAN], "obj_id": 1, "cand_id": 0}).to_parquet(
-            refine / "hypotheses.parquet")
-        pd.DataFrame({"obj_id": [1, 2], "variant": 0, "chosen": True}).to_parquet(refine / "sar.parquet")
+            plan["refine"].path(scene_item(1), "hypotheses"))
+        pd.DataFrame({"obj_id": [1, 2], "variant": 0, "chosen": True}).to_parquet(plan["refine"].path(scene_item(1), "sar"))
         reg = plan["register"].item_dir(scene_item(1))
         reg.mkdir(parents=True, exist_ok=True)
         pd.DataFrame({"status": "ok", "hyp": 0, "obj_id": [1, 1], "cand_id": [0, 1], "signal_geometric": [INF, 1.0],
                       "signal_visual": [NAN, -INF], "w_geometric": [NAN, NAN], "w_visual": [INF, 0.5]}).to_parquet(
-            reg / "candidates.parquet")
+            plan["register"].path(scene_item(1), "coarse_hypotheses"))
 
     def cases(plan, obj_id, limit=3):  # SAR similarities: none, all NaN, inf and NaN
         img = np.full((32, 32, 3), 128, np.uint8)

@@ -62,6 +62,8 @@ def test_update_docs_rewrites_a_stale_copy(tmp_path):
     doc.parent.mkdir()
     start, end = stage_docs.markers("stage-table")
     doc.write_text(f"# Title\n\nbefore\n\n{start}\n| stale | table |\n{end}\n\nafter\n")
+    a_start, a_end = stage_docs.markers("artifact-list")
+    (tmp_path / "docs" / "artifacts.md").write_text(f"{a_start}\n{a_end}\n")  # the other generated doc
     script = [sys.executable, str(ROOT / "scripts" / "update_docs.py"), "--root", str(tmp_path)]
     check = subprocess.run(script + ["--check"], capture_output=True, text=True, timeout=120)
     assert check.returncode == 1 and "out of date; run .venv/bin/python scripts/update_docs.py" in check.stdout

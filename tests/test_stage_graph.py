@@ -110,10 +110,10 @@ def test_side_and_file_helpers():
     assert stage_graph.stages_of_side("scene") == ("segment_prior", "scene_features", "register", "refine")
     assert stage_graph.stages_of_side("evaluation") == ("score",)
     assert stage_graph.stages_of_side("dataset") == ("synth",)
-    timed = stage_graph.stages_writing("images.parquet", "scene")
+    timed = stage_graph.stages_writing("image_times", "scene")
     assert timed == ("scene_features", "register", "refine")
     assert set(timed) <= set(STAGES["refine"].reads_for("all"))  # refine's results CSV may read them all
-    assert set(stage_graph.stages_writing("features.zarr", "obj")) == {"model_features"}
+    assert set(stage_graph.stages_writing("features", "obj")) == {"model_features"}
 
 
 def test_labels_and_parameters_are_declared():

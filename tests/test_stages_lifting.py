@@ -20,7 +20,6 @@ import stages.segment_prior
 import stages.synth
 from pipeline.common import config as cfg
 from pipeline.workflow.plan import RunPlan, obj_item, scene_item
-from pipeline.common.store import load_arrays, read_table
 
 
 
@@ -52,7 +51,7 @@ def test_model_features_carry_the_model_colours(plan):
         item = obj_item(obj_id)
         stages.render_templates.run(plan, item, progress=False)
         stages.model_features.run(plan, item, progress=False)
-        f = load_arrays(plan["model_features"].item_dir(item) / "features.zarr")
+        f = plan["model_features"].arrays(item, "features")
         seen = f["view_count"] > 0
         assert seen.mean() > 0.9, obj_id
         albedo = _surface_colour(bop.load_model(obj_id), f["points"][seen].astype(np.float64))
@@ -69,8 +68,8 @@ def test_scene_features_carry_the_pixel_colours(plan):
     scene_id = plan.scene_ids[0]
     item = scene_item(scene_id)
     stages.scene_features.run(plan, item, progress=False)
-    sf = load_arrays(plan["scene_features"].item_dir(item) / "features.zarr")
-    cands = read_table(plan["scene_features"].item_dir(item) / "candidates.parquet")
+    sf = plan["scene_features"].arrays(item, "features")
+    cands = plan["scene_features"].table(item, "candidate_status")
     checked = 0
     for i, cand in enumerate(cands.itertuples(index=False)):
         k = int(sf["n_points"][i])

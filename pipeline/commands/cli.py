@@ -335,7 +335,7 @@ def show_sar(
     if not ids:
         ids = set()
         for item in plan.scene_items:
-            path = plan["refine"].item_dir(item) / "sar.parquet"
+            path = plan["refine"].path(item, "sar")
             if not path.exists():
                 console.print(f"[red]{path} missing: run the refine stage first (snakemake --cores 2 bop_all)")
                 raise typer.Exit(2)

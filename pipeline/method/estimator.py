@@ -308,7 +308,7 @@ class Estimator:
         geo, vis = self.encoders
         arrays = pack_candidates(found, self.stages.scene_features.n_points, geo.dim, vis.dim)
         table = pd.DataFrame({"cand_id": [m.cand_id for m in masks], "scene_id": scene_id, "im_id": im_id,
-                              "obj_id": [m.obj_id for m in masks], "score": [float(d.score) for d in detections],
+                              "obj_id": [m.obj_id for m in masks], "prior_score": [float(d.score) for d in detections],
                               "status": ["ok" if f.ok else "skipped" for f in found],
                               "reason": [f.reason for f in found], "n_points": [len(f.points) for f in found]})
         registered = self.register(table, arrays, lambda c: _seed(seed, "register", int(c)))

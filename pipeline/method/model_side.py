@@ -4,7 +4,7 @@ the model's symmetry record and its fused-feature ingredients."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
 import numpy as np
 
@@ -56,13 +56,6 @@ def model_features(mesh, templates: Mapping[str, np.ndarray], geo, vis, diameter
     return {"points": points.astype(np.float32), "normals": normals.astype(np.float32),
             "geometric": geometric.astype(np.float32), "visual": visual.astype(np.float32),
             "view_count": view_count.astype(np.int32)}
-
-
-def save_model_features(path: Path, features: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
-    """Write :func:`model_features`' arrays as a Zarr store, each array one chunk."""
-    from pipeline.common.store import save_arrays
-
-    save_arrays(path, features, chunks={name: a.shape for name, a in features.items()}, attrs=attrs)
 
 
 def read_symmetries(path: Path):

@@ -42,7 +42,7 @@ VERIFICATION_COLUMNS = ["silhouette", "depth_fit", "coverage", "free_space", "ve
 CANDIDATE_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "parent", "source", "prior_score", "n_inliers",
                      "inlier_ratio", "R", "t", "fitness", "inlier_rmse", "evidence", *VERIFICATION_COLUMNS,
                      "fine_icp", "time_s"]
-"""Columns of refine's ``candidates.parquet``: each candidate's chosen hypothesis, its pose
+"""Columns of refine's ``candidate_choices.parquet``: each candidate's chosen hypothesis, its pose
 after the fine ICP when ``fine_icp`` (before the choice among a target's candidates adds
 selected, rank, note); time_s is the candidate's, over its hypotheses and the fine ICP."""
 HYPOTHESIS_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "hyp", "parent", "source", "prior_score",
@@ -58,8 +58,8 @@ SAR_COLUMNS = ["scene_id", "im_id", "obj_id", "cand_id", "variant", "R", "t", "s
 """Columns of refine's ``sar.parquet``: one row per symmetric variant tried."""
 REGISTER_COLUMNS = ["cand_id", "scene_id", "im_id", "obj_id", "prior_score", "status", "reason", "hyp", "source",
                     "source_rank", "w_geometric", "w_visual", "signal_geometric", "signal_visual", "modalities_agree",
-                    "R", "t", "n_inliers", "inlier_ratio", "fitness", "n_correspondences", "time_s"]
-"""Columns of register's ``candidates.parquet``: one row per coarse hypothesis."""
+                    "R", "t", "n_inliers", "inlier_ratio", "ransac_fitness", "n_correspondences", "time_s"]
+"""Columns of register's ``coarse_hypotheses.parquet``: one row per coarse hypothesis."""
 
 QUICK_ICP_ITERATIONS = 10
 """Iterations of the quick ICP that ranks the turns of a hypothesis (at the coarsest
@@ -248,11 +248,11 @@ def matchable_model(features: Mapping[str, np.ndarray], pca_dim: int) -> Matchab
 class Hypothesis:
     """One coarse pose of a candidate: where it came from (``source``: ``fused`` (the
     paper's), ``weighted`` (fused with the modality weights), ``geometric`` or ``visual``
-    matches; ``rank``: its place among that source's distinct
+    matches; ``source_rank``: its place among that source's distinct
     RANSAC poses, 0 = the winner) and its :class:`pipeline.method.registration.ransac.Registration`."""
 
     source: str
-    rank: int
+    source_rank: int
     registration: Any
 
 
@@ -356,7 +356,7 @@ def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.n
             r = h.registration
             res = model.points[matches] @ r.R.T + r.t - points
             n = int(np.sum(np.sum(res * res, axis=1) < thr * thr))
-            found[i] = Hypothesis(h.source, h.rank, replace(r, n_inliers=n, inlier_ratio=n / len(points)))
+            found[i] = Hypothesis(h.source, h.source_rank, replace(r, n_inliers=n, inlier_ratio=n / len(points)))
     return result
 
 
@@ -395,7 +395,7 @@ def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarra
                         ) -> tuple[pd.DataFrame, dict[int, float]]:
     """Coarse hypotheses of a scene's candidates (:func:`coarse_hypotheses`).
 
-    candidates: scene_features' table (cand_id, scene_id, im_id, obj_id, score, status,
+    candidates: scene_features' table (cand_id, scene_id, im_id, obj_id, prior_score, status,
     reason, n_points); arrays: its ``features.zarr`` (see :func:`pack_candidates`);
     model_of(obj_id): the object's :class:`MatchableModel`; seed_of(cand_id): the RANSAC
     seed. Returns the table (:data:`REGISTER_COLUMNS`, one row per hypothesis; a skipped
@@ -412,7 +412,7 @@ def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarra
     todo: list[_RegisterItem] = []
     for c in candidates.itertuples(index=False):
         row = {"cand_id": int(c.cand_id), "scene_id": int(c.scene_id), "im_id": int(c.im_id), "obj_id": int(c.obj_id),
-               "prior_score": float(c.score), "status": c.status, "reason": c.reason, "hyp": 0, "source": ""}
+               "prior_score": float(c.prior_score), "status": c.status, "reason": c.reason, "hyp": 0, "source": ""}
         rows_of.append([row])
         if c.status != "ok":
             progress()
@@ -464,12 +464,12 @@ def _register_one(shared: _RegisterShared, item: _RegisterItem) -> tuple[list[di
     rows = []
     for j, h in enumerate(res.hypotheses):
         reg = h.registration
-        rows.append({**row, "hyp": j, "source": h.source, "source_rank": h.rank,
+        rows.append({**row, "hyp": j, "source": h.source, "source_rank": h.source_rank,
                      "w_geometric": res.w_geometric, "w_visual": res.w_visual,
                      "signal_geometric": res.signal_geometric, "signal_visual": res.signal_visual,
                      "modalities_agree": res.agree,
                      "R": _flat(reg.R, 9), "t": _flat(reg.t, 3), "n_inliers": int(reg.n_inliers),
-                     "inlier_ratio": float(reg.inlier_ratio), "fitness": float(reg.fitness),
+                     "inlier_ratio": float(reg.inlier_ratio), "ransac_fitness": float(reg.fitness),
                      "n_correspondences": int(reg.n_correspondences), "time_s": dt if j == 0 else 0.0})
     return rows, dt
 
@@ -631,9 +631,9 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     pose, ICP fitness and inlier_rmse (mm), evidence, verification terms) and the time
     per image (s), the sum of its candidates' times.
     """
-    from pipeline.method.refinement.selection import RANK_COLUMNS
+    from pipeline.method.refinement.selection import SELECT_BY_COLUMN
 
-    key = RANK_COLUMNS[params.select_by]
+    key = SELECT_BY_COLUMN[params.select_by]
     if key == "verification" and verify is None:
         raise ValueError("refine: select_by 'verification' needs the verifier")
     mapper = mapper or Mapper()
@@ -730,7 +730,7 @@ class _RefineWork:
         terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
         if self.verify is not None:
             v = self.verify(im_id, cand_id, obj_id, R, t, self.diameters[obj_id], evidence)
-            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
+            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.value}
         return {**ident, "n_inliers": int(n_inliers), "inlier_ratio": float(inlier_ratio), "R": _flat(R, 9),
                 "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms}
 
@@ -781,7 +781,7 @@ def _refine_one(work: _RefineWork, group: list[dict[str, Any]]) -> tuple[list[di
                  "obj_id": int(c["obj_id"]), "hyp": int(c["hyp"]), "parent": -1, "source": str(c["source"]),
                  "prior_score": float(c["prior_score"])}
         pose = work.icp(ident, np.asarray(c["R"], float).reshape(3, 3), np.asarray(c["t"], float),
-                        float(c["fitness"]))
+                        float(c["ransac_fitness"]))
         mine.append(work.verified(ident, pose, int(c["n_inliers"]), float(c["inlier_ratio"])))
         mine[-1]["time_s"] = dt = time.perf_counter() - t0
         total += dt
@@ -802,10 +802,10 @@ def _fine_one(work: _RefineWork, c: dict[str, Any]) -> tuple[dict[str, Any], flo
     R, t = pose
     update: dict[str, Any] = {}
     v = work.verify(im_id, cand_id, obj_id, R, t, diameter, float(c["evidence"])) if work.verify else None
-    if v is None or v.score >= c["verification"]:
+    if v is None or v.value >= c["verification"]:
         update = {"R": _flat(R, 9), "t": _flat(t, 3), "fine_icp": True}
         if v is not None:
-            update |= {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.score}
+            update |= {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.value}
     return update, time.perf_counter() - t0
 
 
@@ -819,12 +819,12 @@ def choose_estimates(refined: pd.DataFrame, targets: Sequence[Any], diameters: M
     results CSV so that BOP's matching order agrees with ours) and SAR's columns unset
     (sar_variant -1).
     """
-    from pipeline.method.refinement.selection import RANK_COLUMNS, select_estimates
+    from pipeline.method.refinement.selection import SELECT_BY_COLUMN, select_estimates
 
     table = select_estimates(refined, targets, dict(diameters), by=params.select_by,
                              duplicate_frac=params.duplicate_frac)
-    chosen = table[table.selected].sort_values(["im_id", "obj_id", "rank"])
-    poses = chosen.assign(score=chosen[RANK_COLUMNS[params.select_by]].astype(float), sar_variant=-1, sar_reason="")
+    chosen = table[table.selected].sort_values(["im_id", "obj_id", "target_rank"])
+    poses = chosen.assign(score=chosen[SELECT_BY_COLUMN[params.select_by]].astype(float), sar_variant=-1, sar_reason="")
     return table, poses
 
 
@@ -906,6 +906,6 @@ def refine_by_symmetry(poses: pd.DataFrame, transforms: Mapping[int, np.ndarray]
 
 
 def time_table(scene_id: int, image_time: Mapping[int, float]) -> pd.DataFrame:
-    """``images.parquet``: a stage's time per image of one scene (scene_id, im_id, time_s)."""
+    """``image_times.parquet``: a stage's time per image of one scene (scene_id, im_id, time_s)."""
     return pd.DataFrame([{"scene_id": scene_id, "im_id": k, "time_s": v} for k, v in sorted(image_time.items())],
                         columns=["scene_id", "im_id", "time_s"])

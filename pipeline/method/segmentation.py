@@ -67,7 +67,7 @@ def select_candidates(
             h, w = (int(v) for v in rle["size"])
             x, y, bw, bh = (float(v) for v in det.bbox)
             rows.append({
-                "scene_id": key[0], "im_id": key[1], "obj_id": key[2], "score": score,
+                "scene_id": key[0], "im_id": key[1], "obj_id": key[2], "prior_score": score,
                 "bbox_x": x, "bbox_y": y, "bbox_w": bw, "bbox_h": bh,
                 "area": area, "height": h, "width": w,
                 "rle_counts": [int(c) for c in rle["counts"]],
@@ -76,7 +76,7 @@ def select_candidates(
             })
             kept += 1
     table = pd.DataFrame(rows, columns=[
-        "scene_id", "im_id", "obj_id", "score", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
+        "scene_id", "im_id", "obj_id", "prior_score", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
         "area", "height", "width", "rle_counts", "det_index", "prior_time", "prior_source"])
     table.insert(0, "cand_id", np.arange(len(table), dtype=np.int64))
     covered = {tuple(k) for k in table[["scene_id", "im_id", "obj_id"]].itertuples(index=False)}

@@ -149,7 +149,7 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
     from pipeline.workflow.plan import obj_item
     from pipeline.common.store import load_arrays, load_attrs, read_table
 
-    mf_path = plan["model_features"].item_dir(obj_item(obj_id)) / "features.zarr"
+    mf_path = plan["model_features"].path(obj_item(obj_id), "features")
     if not mf_path.exists():
         known = ", ".join(map(str, plan.obj_ids))
         raise FileNotFoundError(f"{mf_path} missing: object {obj_id} has no model features in this run "
@@ -159,7 +159,7 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
     scenes = [scene_id] if scene_id is not None else list(plan.scene_ids)
     chosen = None
     for item in [i for sc in scenes for i in plan.items_of_scene(sc)]:
-        path = plan["register"].item_dir(item) / "candidates.parquet"
+        path = plan["register"].path(item, "coarse_hypotheses")
         if not path.exists():
             raise FileNotFoundError(f"{path} missing: run the register stage first (snakemake --cores 2 bop_all)")
         table = read_table(path)
@@ -187,7 +187,7 @@ def feature_case(plan, obj_id: int, scene_id: int | None = None, cand_id: int | 
     diameter = load_attrs(mf_path).get("diameter")
     if diameter is None:
         diameter = plan.model_info(plan.bop(), obj_id).diameter
-    sf_path = plan["scene_features"].item_dir(item) / "features.zarr"
+    sf_path = plan["scene_features"].path(item, "features")
     scene = load_arrays(sf_path)
     i = int(np.flatnonzero(scene["cand_id"] == int(row.cand_id))[0])
     k = int(scene["n_points"][i])

@@ -62,7 +62,7 @@ def read_scores(plan) -> dict[str, Any]:
     and when the score artifact is damaged (:class:`pipeline.common.store.DamagedArtifact`)."""
     from pipeline.common.store import ensure_sound
 
-    path = plan["score"].item_dir("all") / "scores.json"
+    path = plan["score"].path("all", "scores")
     if not path.exists():
         raise FileNotFoundError(f"{path}: not scored yet; run `snakemake --cores 2 bop_all` "
                                 f"(with the same --config) first")
@@ -314,7 +314,7 @@ def sar_objects(plan) -> list[int]:
 
     ids: set[int] = set()
     for item in plan.scene_items:
-        path = plan["refine"].item_dir(item) / "sar.parquet"
+        path = plan["refine"].path(item, "sar")
         if path.exists():
             t = read_table(path)
             if len(t):
@@ -345,10 +345,10 @@ def hypothesis_tables(plan) -> tuple[pd.DataFrame, pd.DataFrame]:
 
     hyps, regs = [], []
     for item in plan.scene_items:
-        path = plan["refine"].item_dir(item) / "hypotheses.parquet"
+        path = plan["refine"].path(item, "hypotheses")
         if path.exists():
             hyps.append(read_table(path))
-        path = plan["register"].item_dir(item) / "candidates.parquet"
+        path = plan["register"].path(item, "coarse_hypotheses")
         if path.exists():
             regs.append(read_table(path))
     counts = pd.DataFrame(columns=["source", "hypotheses", "chosen", "mean_score"])

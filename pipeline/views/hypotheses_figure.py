@@ -78,7 +78,7 @@ def hypothesis_cases(plan, limit: int = 6, scene_id: int | None = None, cand_id:
 
     frames = []
     for item in plan.scene_items if scene_id is None else plan.items_of_scene(scene_id):
-        path = plan["refine"].item_dir(item) / "hypotheses.parquet"
+        path = plan["refine"].path(item, "hypotheses")
         if not path.exists():
             raise FileNotFoundError(f"{path} missing: run the refine stage first (snakemake --cores 2 bop_all)")
         frames.append(read_table(path))
@@ -102,7 +102,7 @@ def hypothesis_cases(plan, limit: int = 6, scene_id: int | None = None, cand_id:
         order.append((chosen.source.iloc[0] != "fused", margin, int(s), int(c), g.sort_values("hyp")))
     order.sort(key=lambda x: (not x[0], -x[1]))
     bop = plan.bop()
-    boxes = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet").set_index(["scene_id", "cand_id"])
+    boxes = plan["segment_prior"].table("all", "prior_candidates").set_index(["scene_id", "cand_id"])
     rp = plan.run.stages.refine
     infos = bop.models_info()
     cases: list[HypothesisCase] = []

@@ -111,7 +111,7 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     refine = plan["refine"]
     frames = []
     for item in plan.scene_items:
-        path = refine.item_dir(item) / "sar.parquet"
+        path = refine.path(item, "sar")
         if path.exists():
             t = read_table(path)
             frames.append(t[t.obj_id == obj_id])
@@ -137,7 +137,7 @@ def sar_cases(plan, obj_id: int, limit: int = 4) -> list[SarCase]:
     with Renderer(S, S, znear=1.0, zfar=100000.0) as r:
         r.add_mesh(obj_id, bop.load_model(obj_id))
         for changed, gain, scene_id, im_id, cand_id, g, sims in groups[:limit]:
-            boxes = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet")
+            boxes = plan["segment_prior"].table("all", "prior_candidates")
             b = boxes[boxes.cand_id == cand_id].iloc[0]
             rgb = bop.load_rgb(scene_id, im_id)
             K = bop.scene_camera(scene_id)[im_id].K

@@ -107,6 +107,15 @@ class StagePlan:
     upstream: dict[str, str]
     code_version: int
     dir: Path
+    seed_key: str = ""
+    """What the stage's random draws come from (:meth:`StageIO.seed`): its key with the
+    declaration's ``seed_version`` for the code version, and the upstreams' seed keys. A
+    change that bumps the code version without changing what the stage computes (a file
+    renamed) keeps every draw, hence every result."""
+
+    def __post_init__(self) -> None:
+        if not self.seed_key:
+            self.seed_key = self.key
 
     def item_dir(self, item: str) -> Path:
         return self.dir / item
@@ -117,6 +126,27 @@ class StagePlan:
     @property
     def spec(self) -> stage_graph.StageSpec:
         return stage_graph.spec(self.stage)
+
+    def path(self, item: str, name: str) -> Path:
+        """The file of the artifact ``name`` (declared in :mod:`pipeline.workflow.artifact_schema`)
+        in ``item``'s folder."""
+        art = self.spec.artifact(name, item_kind(item))
+        if "{" in art.file:
+            raise ValueError(f"stage {self.stage}: artifact '{name}' is named per dataset ({art.file}); "
+                             "use DatasetPlan.results_csv_name")
+        return self.item_dir(item) / art.file
+
+    def table(self, item: str, name: str):
+        """The table artifact ``name`` of ``item`` (a DataFrame)."""
+        from pipeline.common.store import read_table
+
+        return read_table(self.path(item, name))
+
+    def arrays(self, item: str, name: str, names: list[str] | None = None) -> dict[str, Any]:
+        """The arrays artifact ``name`` of ``item`` (name -> ndarray; ``names``: only those)."""
+        from pipeline.common.store import load_arrays
+
+        return load_arrays(self.path(item, name), names)
 
     def publish_kwargs(self, item: str) -> dict[str, Any]:
         """Keyword arguments for :func:`pipeline.common.store.publish`."""
@@ -298,6 +328,23 @@ class StageIO:
         ensure_sound(folder)  # a damaged input fails here, naming its file, not deep inside a reader
         return folder
 
+    def path(self, stage: str, name: str, item: str | None = None) -> Path:
+        """The file of ``stage``'s artifact ``name`` for ``item`` (as :meth:`input_dir`)."""
+        folder = self.input_dir(stage, item)
+        return self.plan[stage].path(folder.name, name)
+
+    def table(self, stage: str, name: str, item: str | None = None):
+        """``stage``'s table artifact ``name`` for ``item`` (a DataFrame)."""
+        from pipeline.common.store import read_table
+
+        return read_table(self.path(stage, name, item))
+
+    def arrays(self, stage: str, name: str, item: str | None = None, names: list[str] | None = None) -> dict[str, Any]:
+        """``stage``'s arrays artifact ``name`` for ``item`` (name -> ndarray)."""
+        from pipeline.common.store import load_arrays
+
+        return load_arrays(self.path(stage, name, item), names)
+
     def bop(self):
         """The dataset reader (:class:`pipeline.formats.bop.BopDataset`); the stage must read ``dataset``.
         A generated dataset (the synth stage's artifact) is verified first."""
@@ -318,10 +365,11 @@ class StageIO:
         return cfg.shared_root() / self.plan.dataset.source
 
     def seed(self, name: str, seed: int = 0) -> int:
-        """A seed derived from this stage's key and ``name`` (see :func:`pipeline.common.store.item_seed`)."""
+        """A seed derived from this stage's seed key (:attr:`StagePlan.seed_key`) and ``name``
+        (see :func:`pipeline.common.store.item_seed`)."""
         from pipeline.common.store import item_seed
 
-        return item_seed(self.out.key, name, seed)
+        return item_seed(self.out.seed_key, name, seed)
 
     def allowed_files(self) -> set[str]:
         return {w.replace("{results_csv}", self.plan.results_csv_name).replace("{dataset}", self.plan.name)
@@ -334,12 +382,53 @@ class StageIO:
         from pipeline.common.store import publish
 
         with publish(self.out.item_dir(self.item), **self.out.publish_kwargs(self.item)) as w:
-            yield w
+            yield StageWriter(w, self)
             extra = sorted(p.name for p in w.dir.iterdir() if p.name != MANIFEST_NAME)
             extra = [n for n in extra if n not in self.allowed_files()]
             if extra:
                 raise RuntimeError(f"stage {self.stage} wrote {extra}, which its declaration in "
                                    "pipeline/workflow/stage_graph.py does not list")
+
+
+class StageWriter:
+    """What a stage writes into (:meth:`StageIO.publish`): the store's
+    :class:`pipeline.common.store.ArtifactWriter` (``dir``, ``manifest``, ``summary``) and
+    :meth:`write`, which writes a declared artifact by name after checking it against
+    its declaration (:mod:`pipeline.workflow.artifact_schema`)."""
+
+    def __init__(self, writer: Any, io: StageIO):
+        self._w, self._io = writer, io
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._w, name)
+
+    def path(self, name: str) -> Path:
+        """Where the artifact ``name`` of this item goes (for a kind :meth:`write` does not write)."""
+        art = self._io.spec.artifact(name, self._io.kind)
+        return self._w.dir / art.file.replace("{results_csv}", self._io.plan.results_csv_name).replace(
+            "{dataset}", self._io.plan.name)
+
+    def write(self, name: str, data: Any, **options: Any) -> Path:
+        """Write ``data`` as the artifact ``name``: a table (DataFrame; Parquet with the
+        stage key in its metadata, ``options``: more metadata) or arrays (name -> ndarray; Zarr, ``options``: chunks,
+        attrs, to which the key is added), after checking its columns or arrays.
+        Returns the path written."""
+        from pipeline.common.store import save_arrays, write_table
+        from pipeline.workflow.artifact_schema import check_arrays, check_table
+
+        art = self._io.spec.artifact(name, self._io.kind)
+        where = f"stage {self._io.stage} ({self._io.item})"
+        path = self.path(name)
+        if art.kind == "table":
+            check_table(art, data, where)
+            write_table(data, path, metadata={"key": self._io.out.key, **(options.get("metadata") or {})})
+        elif art.kind == "arrays":
+            check_arrays(art, data, where)
+            save_arrays(path, data, chunks=options.get("chunks"),
+                        attrs={"key": self._io.out.key, **(options.get("attrs") or {})})
+        else:
+            raise ValueError(f"{where}: artifact '{name}' is a {art.kind}; write it at w.path('{name}')")
+        return path
 
 
 def _encoder_manifest(name: str, kind: str) -> cfg.EncoderManifest:
@@ -552,21 +641,27 @@ class RunPlan:
             self._plans[name] = self._plan_dataset(name)
         return self._plans[name]
 
-    def _stage(self, ds: str, stage: str, readable: str, params: dict, keys: dict[str, str]) -> StagePlan:
+    def _stage(self, ds: str, stage: str, readable: str, params: dict, keys: dict[str, str],
+               seed_keys: dict[str, str] | None = None) -> StagePlan:
         """The plan of ``stage``: its key hashes its code version, ``params`` and the keys of
         the upstreams its declaration is keyed by (looked up in ``keys``: stage keys so far,
-        ``dataset``, ``models`` and ``prior``)."""
+        ``dataset``, ``models`` and ``prior``). Its seed key hashes the same with the
+        declaration's ``seed_version`` and the upstreams' seed keys (``seed_keys``; the
+        external inputs' are their keys)."""
         spec = stage_graph.spec(stage)
-        upstream = {}
+        upstream, seed_upstream = {}, {}
+        seed_keys = {**keys, **(seed_keys or {})}
         for u in spec.keyed_by:
             # a model-side stage's "dataset" is the models' own fingerprint (see DatasetPlan.models_key)
-            value = keys["models"] if (u == "dataset" and spec.side == "model") else keys.get(u)
-            if value is None and u in EXTERNAL:
+            name = "models" if (u == "dataset" and spec.side == "model") else u
+            if keys.get(name) is None and u in EXTERNAL:
                 continue  # an input this dataset does not have (a synthetic dataset has no source)
-            upstream[u] = value
+            upstream[u], seed_upstream[u] = keys.get(name), seed_keys.get(name)
         key = make_key(stage, spec.code_version, params, upstream)
+        seed_key = make_key(stage, spec.seed_version, params, seed_upstream)
         sig = make_signature(readable, key)
-        return StagePlan(ds, stage, key, sig, params, upstream, spec.code_version, self.cache / ds / stage / sig)
+        return StagePlan(ds, stage, key, sig, params, upstream, spec.code_version, self.cache / ds / stage / sig,
+                         seed_key)
 
     def _plan_dataset(self, name: str) -> DatasetPlan:
         """Every stage's plan, in declaration order, its label and parameters from its
@@ -602,11 +697,12 @@ class RunPlan:
                     raise cfg.ManifestError(f"{prior_file}: localisation prior of dataset '{name}' not found (field 'prior')")
             prior_key = "+".join(file_sha1(f) for f in prior_files)
         keys = {"dataset": dataset_key, "models": models_key, "prior": prior_key}
+        seed_keys: dict[str, str] = {}
         for stage, spec in stage_graph.STAGES.items():
             if stage in stages or spec.synthetic_only:
                 continue
-            stages[stage] = self._stage(name, stage, spec.plan_label(ctx), spec.plan_params(ctx), keys)
-            keys[stage] = stages[stage].key
+            stages[stage] = self._stage(name, stage, spec.plan_label(ctx), spec.plan_params(ctx), keys, seed_keys)
+            keys[stage], seed_keys[stage] = stages[stage].key, stages[stage].seed_key
         return DatasetPlan(run=run, dataset=ds, root=root, obj_ids=obj_ids, scene_images=scene_images, stages=stages,
                            dataset_key=dataset_key, models_key=models_key, prior_key=prior_key)
 

@@ -21,7 +21,6 @@ def prepared_objects(io: StageIO, bop, *, features: Sequence[str] | None = None,
     not given, ``()``: every array), with ``symmetries`` the estimated and near
     symmetries of its ``symmetries.json`` and the declared ones of models_info, with
     ``mesh`` the model (trimesh, mm)."""
-    from pipeline.common.store import load_arrays
     from pipeline.method.geometry.symmetry import SymmetrySet
     from pipeline.method.model_side import read_near_symmetries, read_symmetries
 
@@ -31,8 +30,8 @@ def prepared_objects(io: StageIO, bop, *, features: Sequence[str] | None = None,
         # the folders are looked up when read: an object no candidate needs is never asked for
         if features is not None:
             names = list(features) or None
-            fields["features"] = lambda o=obj_id, names=names: load_arrays(
-                io.input_dir("model_features", obj_item(o)) / "features.zarr", names)
+            fields["features"] = lambda o=obj_id, names=names: io.arrays("model_features", "features", obj_item(o),
+                                                                          names)
         if symmetries:
             fields["symmetries"] = lambda o=obj_id: read_symmetries(_symmetries_json(io, o))
             fields["near_symmetries"] = lambda o=obj_id: read_near_symmetries(_symmetries_json(io, o))
@@ -44,4 +43,4 @@ def prepared_objects(io: StageIO, bop, *, features: Sequence[str] | None = None,
 
 
 def _symmetries_json(io: StageIO, obj_id: int):
-    return io.input_dir("symmetries", obj_item(obj_id)) / "symmetries.json"
+    return io.path("symmetries", "symmetries", obj_item(obj_id))

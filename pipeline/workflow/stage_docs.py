@@ -8,9 +8,10 @@ A generated block of a doc file sits between two marker lines::
 
 :data:`BLOCKS` lists each block: its file, its marker name and the function rendering
 it. ``scripts/update_docs.py`` rewrites every block from the declarations, and
-``tests/test_stage_docs.py`` fails when one differs from what they give. Another
-generated block (say the artifact list of ``docs/artifacts.md``) is one more render
-function and one more :class:`Block`.
+``tests/test_stage_docs.py`` fails when one differs from what they give. The blocks: the
+stage table of ``docs/architecture.md`` and the artifact list of ``docs/artifacts.md``
+(from :mod:`pipeline.workflow.artifact_schema`); another is one more render function and
+one more :class:`Block`.
 """
 
 from __future__ import annotations
@@ -99,13 +100,52 @@ def stage_table(specs: Mapping[str, StageSpec] = STAGES) -> str:
     for name, s in specs.items():
         for kind in s.items:
             reads = ", ".join(_read(u, s, specs) for u in s.reads_for(kind)) or "-"
-            writes = ", ".join(WRITTEN.get(w, f"`{w}`") for w in s.writes_for(kind)) or "-"
+            writes = ", ".join(WRITTEN.get(w, f"[`{w}`](artifacts.md#{_anchor(name, kind, w)})")
+                               for w in s.writes_for(kind)) or "-"
             rows.append(f"| `{name}` | {job_per(s, kind)} | {reads} | {writes} | {_algorithms(s, kind)} |")
     return "\n".join(rows) + "\n"
 
 
+# ------------------------------------------------------------------ artifact list
+
+def _anchor(stage: str, kind: str, file: str) -> str:
+    """The anchor of an artifact's heading in docs/artifacts.md (GitHub's rule: lower
+    case, spaces to dashes, punctuation but dashes and underscores dropped)."""
+    import re
+
+    heading = f"{stage} {_item_words(kind)} {file}"
+    return re.sub(r"[^a-z0-9 _-]", "", heading.lower()).replace(" ", "-")
+
+
+def _item_words(kind: str) -> str:
+    return {"obj": "obj_NNNNNN", "scene": "scene_NNNNNN", "all": "all", "dataset": "dataset"}[kind]
+
+
+def artifact_list(specs: Mapping[str, StageSpec] = STAGES) -> str:
+    """Every artifact of every stage, per item kind: its file, kind, what it holds, and
+    its columns (tables) or arrays (dtype and shape), from the declarations
+    (:mod:`pipeline.workflow.artifact_schema`)."""
+    out: list[str] = []
+    for name, s in specs.items():
+        for kind in s.items:
+            for a in s.artifacts_for(kind):
+                shown = {"{results_csv}": "<method>_<dataset>-<split>.csv", "{dataset}": "<dataset>/"}.get(a.file, a.file)
+                out += [f"### {name} {_item_words(kind)} `{shown}`", "",
+                        f"`{a.name}` ({a.kind}): {a.doc}.", ""]
+                if a.kind == "table":
+                    out += ["| column | dtype | meaning |", "|---|---|---|"]
+                    out += [f"| `{f.name}` | {f.dtype} | {f.doc} |" for f in a.fields]
+                    out.append("")
+                elif a.kind == "arrays":
+                    out += ["| array | dtype | shape | meaning |", "|---|---|---|---|"]
+                    out += [f"| `{f.name}` | {f.dtype} | {f.shape} | {f.doc} |" for f in a.fields]
+                    out.append("")
+    return "\n".join(out)
+
+
 BLOCKS: tuple[Block, ...] = (
     Block("docs/architecture.md", "stage-table", stage_table),
+    Block("docs/artifacts.md", "artifact-list", artifact_list),
 )
 """Every generated block of the docs."""
 

@@ -65,6 +65,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Literal, Mapping, NamedTuple
 
 from pipeline.common import config as cfg
+from pipeline.workflow import artifact_schema as A
 
 if TYPE_CHECKING:
     from pipeline.common.config import DatasetManifest, RunManifest
@@ -167,6 +168,10 @@ class StageSpec:
     parameters in the run manifest, if it has any). Parameters added after caches
     existed enter them only when they change the output, so that runs made before keep
     their artifacts.
+    seed_version: the code version the stage's random draws are keyed by (default: its
+    code version; :attr:`pipeline.workflow.plan.StagePlan.seed_key`). A bump that does not
+    change what the stage computes (issue 29 renamed files) keeps it, so the draws, and
+    the results, stay the same.
     threads, mem_mb, runtime_min: what one job needs, the Snakemake rule's ``threads``
     and ``resources: mem_mb, runtime`` (a cluster profile may raise them per rule). The
     memory is about twice the peak measured with the default encoders on the benchmarks
@@ -180,7 +185,7 @@ class StageSpec:
     code_version: int
     items: tuple[ItemKind, ...]
     reads: Mapping[str, tuple[str, ...]]
-    writes: Mapping[str, tuple[str, ...]]
+    writes: Mapping[str, tuple[A.Artifact, ...]]
     keyed_by: tuple[str, ...]
     algorithm: str
     side: Side = "scene"
@@ -194,10 +199,13 @@ class StageSpec:
     params: Callable[[PlanContext], dict[str, Any]] | None = None
     more_algorithms: Mapping[str, tuple[str | tuple[str, str], ...]] = field(default_factory=dict)
     notes: Mapping[str, str] = field(default_factory=dict)
+    seed_version: int = 0
 
     def __post_init__(self) -> None:
         if not self.module:
             object.__setattr__(self, "module", f"stages.{self.name}")
+        if not self.seed_version:
+            object.__setattr__(self, "seed_version", self.code_version)
 
     def reads_for(self, kind: str) -> tuple[str, ...]:
         """What the stage reads when run for an item of ``kind``."""
@@ -206,7 +214,23 @@ class StageSpec:
         return self.reads.get(kind, ())
 
     def writes_for(self, kind: str) -> tuple[str, ...]:
-        return self.writes.get(kind, ())
+        """The file names the stage writes into an item folder of ``kind``."""
+        return tuple(a.file for a in self.writes.get(kind, ()))
+
+    def artifacts_for(self, kind: str) -> tuple[A.Artifact, ...]:
+        """The artifacts (:class:`pipeline.workflow.artifact_schema.Artifact`) the stage
+        writes into an item folder of ``kind``."""
+        return tuple(self.writes.get(kind, ()))
+
+    def artifact(self, name: str, kind: str | None = None) -> A.Artifact:
+        """The artifact ``name`` written for items of ``kind`` (default: the first kind
+        writing one of that name)."""
+        for k in ([kind] if kind is not None else self.items):
+            for a in self.writes.get(k, ()):
+                if a.name == name:
+                    return a
+        known = sorted({a.name for k in self.items for a in self.writes.get(k, ())})
+        raise KeyError(f"stage {self.name} writes no artifact '{name}' (it writes: {', '.join(known)})")
 
     @property
     def all_reads(self) -> set[str]:
@@ -344,51 +368,52 @@ def _score_params(c: PlanContext) -> dict[str, Any]:
 
 _SPECS = (
     StageSpec(
-        "synth", 1, ("dataset",), reads={"dataset": ("source",)}, writes={"dataset": ("{dataset}",)},
+        "synth", 1, ("dataset",), reads={"dataset": ("source",)}, writes={"dataset": (A.DATASET,)},
         keyed_by=("source",), algorithm="pipeline.evaluation.synth.build_dataset", side="dataset", synthetic_only=True,
         summary="the synthetic or semi-real BOP dataset and its prior (those datasets only)",
         threads=1, mem_mb=2000, runtime_min=30, label=_synth_label, params=_synth_params),
     StageSpec(
-        "render_templates", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("templates.zarr",)},
+        "render_templates", 1, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": (A.TEMPLATES,)},
         keyed_by=("dataset",), algorithm="pipeline.method.render.templates.render_object_templates", side="model",
         summary="R object-centred template views of one object",
         threads=1, mem_mb=1500, runtime_min=60, label=_render_templates_label, params=_render_templates_params),
     StageSpec(
-        "symmetries", 2, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": ("symmetries.json",)},
+        "symmetries", 2, ("obj",), reads={"obj": ("dataset",)}, writes={"obj": (A.SYMMETRIES,)},
         keyed_by=("dataset",), algorithm="pipeline.method.model_side.symmetry_record", side="model",
         summary="the shape symmetries of one object",
         threads=1, mem_mb=1000, runtime_min=30, label=_symmetries_label, params=_symmetries_params),
     StageSpec(
         "model_features", 1, ("obj",), reads={"obj": ("render_templates", "dataset")},
-        writes={"obj": ("features.zarr",)}, keyed_by=("render_templates",),
+        writes={"obj": (A.MODEL_FEATURES,)}, keyed_by=("render_templates",),
         algorithm="pipeline.method.model_side.model_features", side="model",
         summary="geometric and lifted visual features of one object's sampled points",
         threads=2, mem_mb=4000, runtime_min=120, label=_encoders_label, params=_model_features_params),
     StageSpec(
-        "segment_prior", 3, ("all",), reads={"all": ("dataset", "prior")}, writes={"all": ("candidates.parquet",)},
+        "segment_prior", 4, ("all",), reads={"all": ("dataset", "prior")}, writes={"all": (A.PRIOR_CANDIDATES,)},
         keyed_by=("dataset", "prior"), algorithm="pipeline.method.segmentation.candidates_from_priors",
         summary="candidate masks of every target from the localisation prior(s)",
-        threads=1, mem_mb=1000, runtime_min=30, label=_segment_prior_label, params=_segment_prior_params),
+        threads=1, mem_mb=1000, runtime_min=30, label=_segment_prior_label, params=_segment_prior_params,
+        seed_version=3),
     StageSpec(
-        "scene_features", 1, ("scene",), reads={"scene": ("segment_prior", "dataset")},
-        writes={"scene": ("features.zarr", "candidates.parquet", "images.parquet")},
+        "scene_features", 2, ("scene",), reads={"scene": ("segment_prior", "dataset")},
+        writes={"scene": (A.CANDIDATE_FEATURES, A.CANDIDATE_STATUS, A.SCENE_FEATURES_TIMES)},
         keyed_by=("segment_prior", "dataset"), algorithm="pipeline.method.estimator.Estimator.scene_features",
         summary="lifted points and features of every candidate of one scene",
-        threads=2, mem_mb=4000, runtime_min=240, label=_encoders_label, params=_scene_features_params),
+        threads=2, mem_mb=4000, runtime_min=240, label=_encoders_label, params=_scene_features_params,
+        seed_version=1),
     StageSpec(
-        "register", 5, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
-        writes={"scene": ("candidates.parquet", "images.parquet", "pca.zarr")},
+        "register", 6, ("scene",), reads={"scene": ("scene_features", "model_features", "dataset")},
+        writes={"scene": (A.COARSE_HYPOTHESES, A.REGISTER_TIMES, A.PCA)},
         keyed_by=("model_features", "scene_features"), algorithm="pipeline.method.estimator.Estimator.register",
         summary="coarse pose hypotheses of every candidate of one scene (RANSAC on weighted fused features and on "
                 "each modality's own)",
-        threads=1, mem_mb=1500, runtime_min=240, label=_register_label),
+        threads=1, mem_mb=1500, runtime_min=240, label=_register_label, seed_version=5),
     StageSpec(
-        "refine", 8, ("scene", "all"),
+        "refine", 9, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
                "all": ("refine", "scene_features", "register", "segment_prior")},
-        writes={"scene": ("candidates.parquet", "hypotheses.parquet", "poses.parquet", "sar.parquet",
-                          "images.parquet"),
-                "all": ("{results_csv}",)},
+        writes={"scene": (A.CANDIDATE_CHOICES, A.HYPOTHESES, A.POSES, A.SAR, A.REFINE_TIMES),
+                "all": (A.RESULTS_CSV,)},
         keyed_by=("register", "symmetries"), algorithm="pipeline.method.estimator.Estimator.refine",
         more_algorithms={"scene": ("pipeline.method.estimator.Estimator.refine_by_symmetry",),
                          "all": ("pipeline.formats.bop.results.write_results_csv",
@@ -396,9 +421,9 @@ _SPECS = (
         notes={"all": "gathers every scene's estimates"},
         summary="ICP and verification of every hypothesis, the estimates chosen per target, SAR; item 'all': the BOP "
                 "results CSV",
-        threads=1, mem_mb=2000, runtime_min=240, label=_refine_label, params=_refine_params),
+        threads=1, mem_mb=2000, runtime_min=240, label=_refine_label, params=_refine_params, seed_version=8),
     StageSpec(
-        "score", 2, ("all",), reads={"all": ("refine", "dataset")}, writes={"all": ("errors.parquet", "scores.json")},
+        "score", 2, ("all",), reads={"all": ("refine", "dataset")}, writes={"all": (A.ERRORS, A.SCORES)},
         keyed_by=("refine", "dataset"), algorithm="pipeline.evaluation.metrics.score_results_file",
         side="evaluation", summary="BOP19 VSD, MSSD, MSPD and AR of the results CSV",
         threads=1, mem_mb=2000, runtime_min=120, label=lambda c: "bop19", params=_score_params),
@@ -425,11 +450,12 @@ def stages_of_side(side: Side) -> tuple[str, ...]:
     return tuple(name for name, s in STAGES.items() if s.side == side)
 
 
-def stages_writing(file_name: str, kind: str) -> tuple[str, ...]:
-    """The stages whose items of ``kind`` hold ``file_name``, in declaration order:
-    ``stages_writing("images.parquet", "scene")`` are those that record their time per
-    image (scene_features, register, refine), which the results CSV sums."""
-    return tuple(name for name, s in STAGES.items() if kind in s.items and file_name in s.writes_for(kind))
+def stages_writing(artifact: str, kind: str) -> tuple[str, ...]:
+    """The stages whose items of ``kind`` hold the artifact named ``artifact``, in
+    declaration order: ``stages_writing("image_times", "scene")`` are those that record
+    their time per image (scene_features, register, refine), which the results CSV sums."""
+    return tuple(name for name, s in STAGES.items()
+                 if kind in s.items and artifact in (a.name for a in s.artifacts_for(kind)))
 
 
 class StageRule(NamedTuple):

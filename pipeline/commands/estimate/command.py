@@ -151,17 +151,9 @@ def estimate(
     (:func:`pipeline.commands.estimate.frame.dataset_manifest`): templates and SAR renders are
     then grey too.
     """
-    from pipeline.formats.bop import wrap
-    from pipeline.common.config import load_run_with_overrides
-    from pipeline.commands.estimate.frame import write_frame_dataset
-    from pipeline.commands.estimate.inputs import (check_intrinsics, check_prior_size, load_camera, load_depth, load_mask,
-                                          load_model, load_rgb_and_mode, parse_bbox, scale_warning)
-    from pipeline.commands.estimate.output import claim
-    from pipeline.method.geometry.box_points import box_candidate_points
-    from pipeline.method.geometry.crops import mask_to_bbox
-    from pipeline.workflow.plan import build_encoders
     from pipeline.common.progress import StepTimer
-    from pipeline.common.stand_in import encoders_sentence, stand_in_notice
+    from pipeline.commands.estimate.output import claim
+    from pipeline.formats.bop import wrap
 
     steps = StepTimer(progress, console)
     overrides = merge_flags(overrides, geometric=geometric, visual=visual, device=device)
@@ -173,101 +165,17 @@ def estimate(
     except ValueError as e:
         raise EstimateError(f"--bop-name: {e}") from None
     with steps("inputs"):
-        run = load_run_with_overrides(overrides)
-        notice = stand_in_notice(run.geometric_encoder, run.visual_encoder, form="estimate")
-        if notice:
-            steps.line(notice)
-        cam = load_camera(camera)
-        for name, p in (("model", model), ("RGB", rgb), ("depth", depth)):
-            if not Path(p).is_file():
-                raise EstimateError(f"{p}: {name} file not found")
-        if depth_scale is not None and not (depth_scale > 0 and math.isfinite(depth_scale)):
-            raise EstimateError(f"--depth-scale must be a positive number, got {depth_scale}")
-        scale = depth_scale if depth_scale is not None else (cam.depth_scale if cam.depth_scale is not None else 1.0)
-        scale_src = "--depth-scale" if depth_scale is not None else (f"{camera}" if cam.depth_scale is not None else "default")
-        rgb_im, grey_why = load_rgb_and_mode(rgb)
-        image_mode = "gray" if grey_why else "rgb"
-        depth_im = load_depth(depth, scale)
-        if rgb_im.shape[:2] != depth_im.shape:
-            raise EstimateError(f"{depth}: depth is {depth_im.shape[1]}x{depth_im.shape[0]} px but {rgb} is "
-                                f"{rgb_im.shape[1]}x{rgb_im.shape[0]}")
-        H, W = depth_im.shape
-        check_intrinsics(cam, W, H)
-        mask_im = load_mask(mask, (H, W)) if mask is not None else None
-        if bbox is not None:
-            box = parse_bbox(bbox)
-            if box[0] >= W or box[1] >= H or box[0] + box[2] <= 0 or box[1] + box[3] <= 0:
-                raise EstimateError(f"--bbox {box}: lies outside the {W}x{H} image")
-        else:
-            box = tuple(float(v) for v in mask_to_bbox(mask_im))
-        mesh, diameter = load_model(model, model_scale)
-        geo, vis = build_encoders(run)
-    steps.note(f"camera: {cam.form}; depth scale {scale:g} mm/unit ({scale_src}); image {W}x{H}; "
-               f"model diameter {diameter:.1f} mm; encoders {geo.signature()} + {vis.signature()}")
-    if grey_why:
-        steps.line(f"grey image detected ({grey_why}): the frame is a grey dataset (image_dir: gray), so "
-                   "templates and SAR renders are grey too")
-    warning = scale_warning(depth_im, cam.K, box, diameter)
-    if warning:
-        steps.warn(warning)
-    kept = None
-    if mask_im is None:
-        with steps("box prior"):
-            sel = box_candidate_points(depth_im, cam.K, box, diameter, seed=run.stages.scene_features.seed)
-        if len(sel.points) == 0:
-            raise EstimateError(f"no depth point of the object found in the box {list(box)}: check the box and the depth image")
-        kept = np.zeros((H, W), bool)
-        kept[sel.pixels[:, 1], sel.pixels[:, 0]] = True
-        prior_details = sel.details
-    else:
-        prior_details = {"mask_pixels": int(mask_im.sum()), "valid_depth": int((mask_im & (depth_im > 0)).sum())}
-    # the prior's mask as segment_prior will read it (wrap_frame's rule): refused now, before
-    # any stage runs, when segment_prior or scene_features would drop it
-    prior_mask = mask_im if mask_im is not None else wrap.box_mask(box, (H, W)) & kept
-    check_prior_size(prior_mask, depth_im, cam.K, diameter, min_area=run.stages.segment_prior.min_area,
-                     min_points=run.stages.scene_features.min_points,
-                     what=f"--mask {mask}" if mask is not None else f"--bbox {','.join(f'{v:g}' for v in box)}")
-
+        frame_in = _read_inputs(model, rgb, depth, camera, mask, bbox, depth_scale, model_scale, overrides, steps)
+    _describe(frame_in, steps)
+    kept, prior_details = _prior_of(frame_in, mask, steps)
     # --out: checked and claimed before any stage runs; the run writes to a staging folder
     # in it, moved into place once complete (pipeline.commands.estimate.output)
     folder = claim(out_dir) if out_dir is not None else None
     work = folder.staging if folder is not None else Path(tempfile.mkdtemp(prefix="freeze-estimate-"))
     committed = False
     try:
-        with steps("write the frame as a BOP dataset"):
-            try:
-                frame = write_frame_dataset(work / "bop", bop_name, rgb=rgb_im, depth_mm=depth_im, K=cam.K,
-                                            model_path=Path(model), model_scale=model_scale, mask=mask_im,
-                                            bbox=box, kept_mask=kept, image_mode=image_mode,
-                                            final_root=folder.out / "bop" if folder is not None else None)
-            except ValueError as e:
-                raise EstimateError(f"writing the BOP dataset {bop_name}: {e}") from None
-            except OSError as e:
-                raise _write_failure(folder, work, e) from None
-        rp = frame_run_plan(run, frame, Path(cache) if cache else None)
-        plan = rp[frame.root.name]
-        for note in rp.notes(frame.root.name):
-            steps.warn(note)
-        obj, scene = frame.obj_item(), frame.scene_item()
-        reused = run_stages(plan, [(s, obj) for s in MODEL_STAGES], steps)
-        run_stages(plan, [(s, _item(s, scene)) for s in SCENE_STAGES], steps)
-        try:
-            res = _finish(plan, frame, work if out_dir is not None else None, run=run, mesh=mesh, diameter=diameter,
-                           rgb=rgb_im, K=cam.K, box=box, steps=steps, model_cache_reused=all(reused.values()),
-                           prior_details=prior_details,
-                           inputs={"model": str(Path(model).resolve()), "rgb": str(Path(rgb).resolve()),
-                                   "depth": str(Path(depth).resolve()), "camera": str(Path(camera).resolve()),
-                                   "mask": str(Path(mask).resolve()) if mask is not None else None,
-                                   "prior": "mask" if mask is not None else "bbox", "bbox": [float(v) for v in box],
-                                   "depth_scale": scale, "depth_scale_from": scale_src, "model_scale": model_scale,
-                                   "camera_form": cam.form, "K": cam.K.tolist(), "image_size": [W, H],
-                                   "image_mode": image_mode, "grey_because": grey_why},
-                           encoders={"geometric": run.geometric_encoder, "visual": run.visual_encoder,
-                                     "signatures": {"geometric": geo.signature(), "visual": vis.signature()},
-                                     "device": run.device},
-                           note=encoders_sentence(run.geometric_encoder, run.visual_encoder, form="estimate"))
-        except _WriteFailed as w:
-            raise _write_failure(folder, work, w.error) from None
+        res = _estimate_frame(frame_in, kept, prior_details, bop_name, folder, work, cache, steps,
+                              paths={"model": model, "rgb": rgb, "depth": depth, "camera": camera, "mask": mask})
         if folder is None:
             return res
         folder.commit()
@@ -280,6 +188,165 @@ def estimate(
             shutil.rmtree(work, ignore_errors=True)
         elif not committed:  # an error, or an interruption: nothing half-written stays in --out
             folder.abort()
+
+
+@dataclass
+class _FrameInputs:
+    """What ``freeze estimate`` read and checked: the run, the camera (``cam.K``), the
+    depth scale (mm/unit) and where it came from, the images (rgb (H, W, 3) uint8, why
+    it is grey or None, depth (H, W) float32 mm), the mask (H, W) bool or None, the box
+    (x, y, w, h) px, the model (trimesh, mm; diameter mm) and the run's encoders."""
+
+    run: Any
+    cam: Any
+    scale: float
+    scale_src: str
+    rgb: np.ndarray
+    grey_why: str | None
+    depth: np.ndarray
+    mask: np.ndarray | None
+    box: tuple[float, float, float, float]
+    mesh: Any
+    diameter: float
+    model_scale: float
+    encoders: tuple[Any, Any]
+
+    @property
+    def image_mode(self) -> str:
+        return "gray" if self.grey_why else "rgb"
+
+
+def _read_inputs(model, rgb, depth, camera, mask, bbox, depth_scale: float | None, model_scale: float,
+                 overrides: Mapping[str, Any], steps) -> _FrameInputs:
+    """Read and check the run, camera, images, prior and model (each refusal one
+    EstimateError naming the file or option)."""
+    from pipeline.common.config import load_run_with_overrides
+    from pipeline.common.stand_in import stand_in_notice
+    from pipeline.commands.estimate.inputs import (check_intrinsics, load_camera, load_depth, load_mask, load_model,
+                                                   load_rgb_and_mode, parse_bbox)
+    from pipeline.method.geometry.crops import mask_to_bbox
+    from pipeline.workflow.plan import build_encoders
+
+    run = load_run_with_overrides(overrides)
+    notice = stand_in_notice(run.geometric_encoder, run.visual_encoder, form="estimate")
+    if notice:
+        steps.line(notice)
+    cam = load_camera(camera)
+    for name, p in (("model", model), ("RGB", rgb), ("depth", depth)):
+        if not Path(p).is_file():
+            raise EstimateError(f"{p}: {name} file not found")
+    if depth_scale is not None and not (depth_scale > 0 and math.isfinite(depth_scale)):
+        raise EstimateError(f"--depth-scale must be a positive number, got {depth_scale}")
+    scale = depth_scale if depth_scale is not None else (cam.depth_scale if cam.depth_scale is not None else 1.0)
+    scale_src = "--depth-scale" if depth_scale is not None else (f"{camera}" if cam.depth_scale is not None else "default")
+    rgb_im, grey_why = load_rgb_and_mode(rgb)
+    depth_im = load_depth(depth, scale)
+    if rgb_im.shape[:2] != depth_im.shape:
+        raise EstimateError(f"{depth}: depth is {depth_im.shape[1]}x{depth_im.shape[0]} px but {rgb} is "
+                            f"{rgb_im.shape[1]}x{rgb_im.shape[0]}")
+    H, W = depth_im.shape
+    check_intrinsics(cam, W, H)
+    mask_im = load_mask(mask, (H, W)) if mask is not None else None
+    if bbox is not None:
+        box = parse_bbox(bbox)
+        if box[0] >= W or box[1] >= H or box[0] + box[2] <= 0 or box[1] + box[3] <= 0:
+            raise EstimateError(f"--bbox {box}: lies outside the {W}x{H} image")
+    else:
+        box = tuple(float(v) for v in mask_to_bbox(mask_im))
+    mesh, diameter = load_model(model, model_scale)
+    return _FrameInputs(run, cam, scale, scale_src, rgb_im, grey_why, depth_im, mask_im, box, mesh, diameter,
+                        model_scale, build_encoders(run))
+
+
+def _describe(f: _FrameInputs, steps) -> None:
+    """The lines saying what was read: camera, scale, image, model, encoders; a grey
+    image; a depth scale that looks wrong for the model's size."""
+    from pipeline.commands.estimate.inputs import scale_warning
+
+    geo, vis = f.encoders
+    H, W = f.depth.shape
+    steps.note(f"camera: {f.cam.form}; depth scale {f.scale:g} mm/unit ({f.scale_src}); image {W}x{H}; "
+               f"model diameter {f.diameter:.1f} mm; encoders {geo.signature()} + {vis.signature()}")
+    if f.grey_why:
+        steps.line(f"grey image detected ({f.grey_why}): the frame is a grey dataset (image_dir: gray), so "
+                   "templates and SAR renders are grey too")
+    warning = scale_warning(f.depth, f.cam.K, f.box, f.diameter)
+    if warning:
+        steps.warn(warning)
+
+
+def _prior_of(f: _FrameInputs, mask, steps) -> tuple[np.ndarray | None, dict]:
+    """(the box prior's kept pixels (H, W) bool, None with a mask; the prior's details),
+    refusing now, before any stage runs, a prior that segment_prior or scene_features
+    would drop (the mask as segment_prior will read it: wrap_frame's rule)."""
+    from pipeline.commands.estimate.inputs import check_prior_size
+    from pipeline.formats.bop import wrap
+    from pipeline.method.geometry.box_points import box_candidate_points
+
+    H, W = f.depth.shape
+    kept = None
+    if f.mask is None:
+        with steps("box prior"):
+            sel = box_candidate_points(f.depth, f.cam.K, f.box, f.diameter, seed=f.run.stages.scene_features.seed)
+        if len(sel.points) == 0:
+            raise EstimateError(f"no depth point of the object found in the box {list(f.box)}: check the box and the "
+                                "depth image")
+        kept = np.zeros((H, W), bool)
+        kept[sel.pixels[:, 1], sel.pixels[:, 0]] = True
+        details = sel.details
+    else:
+        details = {"mask_pixels": int(f.mask.sum()), "valid_depth": int((f.mask & (f.depth > 0)).sum())}
+    prior_mask = f.mask if f.mask is not None else wrap.box_mask(f.box, (H, W)) & kept
+    check_prior_size(prior_mask, f.depth, f.cam.K, f.diameter, min_area=f.run.stages.segment_prior.min_area,
+                     min_points=f.run.stages.scene_features.min_points,
+                     what=f"--mask {mask}" if mask is not None else f"--bbox {','.join(f'{v:g}' for v in f.box)}")
+    return kept, details
+
+
+def _estimate_frame(f: _FrameInputs, kept, prior_details: dict, bop_name: str, folder, work: Path, cache, steps,
+                    paths: Mapping[str, Any]) -> EstimateResult:
+    """Write the frame as a one-image BOP dataset in ``work``, run the stages on it (the
+    model side from the cache when it is there), and read the estimate back
+    (:func:`_finish`); OSErrors while writing become the one line of :func:`_write_failure`."""
+    from pipeline.common.stand_in import encoders_sentence
+    from pipeline.commands.estimate.frame import write_frame_dataset
+
+    with steps("write the frame as a BOP dataset"):
+        try:
+            frame = write_frame_dataset(work / "bop", bop_name, rgb=f.rgb, depth_mm=f.depth, K=f.cam.K,
+                                        model_path=Path(paths["model"]), model_scale=f.model_scale, mask=f.mask,
+                                        bbox=f.box, kept_mask=kept, image_mode=f.image_mode,
+                                        final_root=folder.out / "bop" if folder is not None else None)
+        except ValueError as e:
+            raise EstimateError(f"writing the BOP dataset {bop_name}: {e}") from None
+        except OSError as e:
+            raise _write_failure(folder, work, e) from None
+    run, (geo, vis) = f.run, f.encoders
+    rp = frame_run_plan(run, frame, Path(cache) if cache else None)
+    plan = rp[frame.root.name]
+    for note in rp.notes(frame.root.name):
+        steps.warn(note)
+    obj, scene = frame.obj_item(), frame.scene_item()
+    reused = run_stages(plan, [(s, obj) for s in MODEL_STAGES], steps)
+    run_stages(plan, [(s, _item(s, scene)) for s in SCENE_STAGES], steps)
+    H, W = f.depth.shape
+    mask = paths["mask"]
+    inputs = {k: str(Path(paths[k]).resolve()) for k in ("model", "rgb", "depth", "camera")}
+    inputs.update({"mask": str(Path(mask).resolve()) if mask is not None else None,
+                   "prior": "mask" if mask is not None else "bbox", "bbox": [float(v) for v in f.box],
+                   "depth_scale": f.scale, "depth_scale_from": f.scale_src, "model_scale": f.model_scale,
+                   "camera_form": f.cam.form, "K": f.cam.K.tolist(), "image_size": [W, H],
+                   "image_mode": f.image_mode, "grey_because": f.grey_why})
+    try:
+        return _finish(plan, frame, work if folder is not None else None, run=run, mesh=f.mesh, diameter=f.diameter,
+                       rgb=f.rgb, K=f.cam.K, box=f.box, steps=steps, model_cache_reused=all(reused.values()),
+                       prior_details=prior_details, inputs=inputs,
+                       encoders={"geometric": run.geometric_encoder, "visual": run.visual_encoder,
+                                 "signatures": {"geometric": geo.signature(), "visual": vis.signature()},
+                                 "device": run.device},
+                       note=encoders_sentence(run.geometric_encoder, run.visual_encoder, form="estimate"))
+    except _WriteFailed as w:
+        raise _write_failure(folder, work, w.error) from None
 
 
 def _write_failure(folder, work: Path, e: OSError) -> EstimateError:
@@ -365,7 +432,6 @@ def _write_outputs(out: Path, files: dict[str, Path], plan, frame, artifacts: di
     from pipeline.commands.estimate.frame import IM_ID, SCENE_ID
     from pipeline.views.overlay import points_picture, render_overlay
     from pipeline.method.scene_side import candidate_points
-    from pipeline.common.store import load_arrays
 
     with steps("write outputs"):
         caption = (f"evidence {record['evidence']:.3f}  inliers {record['n_inliers']}  "
@@ -377,7 +443,7 @@ def _write_outputs(out: Path, files: dict[str, Path], plan, frame, artifacts: di
         depth = plan.bop().load_depth(SCENE_ID, IM_ID)
         mask = plan_prior_mask(plan, frame)
         kept_pixels = candidate_points(depth, K, mask, diameter)[1]
-        feats = load_arrays(artifacts["scene_features"] / "features.zarr", ["pixels", "n_points"])
+        feats = plan["scene_features"].arrays(frame.scene_item(), "features", ["pixels", "n_points"])
         files["points"] = out / "points.png"
         save_rgb(files["points"], points_picture(rgb, kept_pixels, feats["pixels"][0, :int(feats["n_points"][0])], box))
         for stage, folder in artifacts.items():
@@ -390,9 +456,8 @@ def _write_outputs(out: Path, files: dict[str, Path], plan, frame, artifacts: di
 def plan_prior_mask(plan, frame) -> np.ndarray:
     """(H, W) bool: the mask of the frame's prior, as segment_prior stored it."""
     from pipeline.formats.bop.detections import prior_row_mask
-    from pipeline.common.store import read_table
 
-    c = read_table(plan["segment_prior"].item_dir("all") / "candidates.parquet").iloc[0]
+    c = plan["segment_prior"].table("all", "prior_candidates").iloc[0]
     return prior_row_mask(c)
 
 

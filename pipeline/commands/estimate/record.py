@@ -33,30 +33,29 @@ def candidate_record(plan, frame) -> dict[str, Any]:
     of the hypothesis it turned (its parent). Raises EstimateError, with
     the stage's reason, when the candidate was skipped or got no pose.
     """
-    from pipeline.common.store import read_table
 
     scene, obj = frame.scene_item(), frame.obj_item()
-    sf = _one(read_table(plan["scene_features"].item_dir(scene) / "candidates.parquet"), "scene_features")
+    sf = _one(plan["scene_features"].table(scene, "candidate_status"), "scene_features")
     if sf.status != "ok":
         raise EstimateError(f"the candidate was skipped: {sf.reason} (scene_features.min_points); check the mask or "
                             "box, the depth image and --depth-scale")
-    refined = _one(read_table(plan["refine"].item_dir(scene) / "candidates.parquet"), "refine")
-    hyps = read_table(plan["register"].item_dir(scene) / "candidates.parquet")
+    refined = _one(plan["refine"].table(scene, "candidate_choices"), "refine")
+    hyps = plan["register"].table(scene, "coarse_hypotheses")
     # A turn (refine's source "turn") has no row in register's table: its parent has.
     registered_hyp = int(refined.parent) if int(refined.parent) >= 0 else int(refined.hyp)
     reg = _one(hyps[hyps.hyp == registered_hyp], "register (the chosen hypothesis)")
-    verified = read_table(plan["refine"].item_dir(scene) / "hypotheses.parquet")
-    poses = read_table(plan["refine"].item_dir(scene) / "poses.parquet")
+    verified = plan["refine"].table(scene, "hypotheses")
+    poses = plan["refine"].table(scene, "poses")
     if len(poses) == 0:
         raise EstimateError(f"refine kept no estimate: {refined.note or 'see ' + str(plan['refine'].item_dir(scene))}")
     pose = _one(poses, "refine poses")
-    sar = read_table(plan["refine"].item_dir(scene) / "sar.parquet")
-    sym = json.loads((plan["symmetries"].item_dir(obj) / "symmetries.json").read_text())
+    sar = plan["refine"].table(scene, "sar")
+    sym = json.loads(plan["symmetries"].path(obj, "symmetries").read_text())
     return {
         "R": np.asarray(pose.R, float).reshape(3, 3), "t": np.asarray(pose.t, float),
         "evidence": float(refined.evidence),
         "n_inliers": int(reg.n_inliers), "inlier_ratio": float(reg.inlier_ratio),
-        "ransac_fitness": float(reg.fitness), "n_correspondences": int(reg.n_correspondences),
+        "ransac_fitness": float(reg.ransac_fitness), "n_correspondences": int(reg.n_correspondences),
         "fitness": float(refined.fitness), "inlier_rmse_mm": float(refined.inlier_rmse),
         "sar_variant": int(pose.sar_variant), "sar_reason": str(pose.sar_reason),
         "sar_n_variants": int(len(sar)), "sar_scores": [float(s) for s in sar.similarity],

@@ -16,7 +16,7 @@ def registration_evidence(inlier_ratio: float, fitness: float) -> float:
     return float(max(0.0, min(1.0, inlier_ratio)) * max(0.0, min(1.0, fitness)))
 
 
-RANK_COLUMNS = {"verification": "verification", "evidence": "evidence", "inliers": "n_inliers",
+SELECT_BY_COLUMN = {"verification": "verification", "evidence": "evidence", "inliers": "n_inliers",
                 "prior": "prior_score", "fitness": "fitness"}
 """The column each ranking rule of :func:`select_estimates` sorts by."""
 
@@ -41,20 +41,20 @@ def select_estimates(
     whose translation lies within ``duplicate_frac * diameter`` of one already kept for
     the target is a duplicate hypothesis of the same instance and is skipped.
 
-    Returns ``candidates`` with ``selected`` (bool), ``rank`` (0 = best kept, -1 when
+    Returns ``candidates`` with ``selected`` (bool), ``target_rank`` (0 = best kept, -1 when
     not kept) and ``note`` (why a candidate was not kept: ``duplicate of N``,
     ``beyond inst_count``, ``not a target``).
     """
-    if by not in RANK_COLUMNS:
-        raise ValueError(f"select_estimates: 'by' must be one of {sorted(RANK_COLUMNS)}, got {by!r}")
+    if by not in SELECT_BY_COLUMN:
+        raise ValueError(f"select_estimates: 'by' must be one of {sorted(SELECT_BY_COLUMN)}, got {by!r}")
     want = {(t.scene_id, t.im_id, t.obj_id): t.inst_count for t in targets}
     out = candidates.copy()
     out["selected"] = False
-    out["rank"] = -1
+    out["target_rank"] = -1
     out["note"] = ""
     if out.empty:
         return out
-    keys = [RANK_COLUMNS[by]] + [c for c in ("evidence", "n_inliers", "prior_score") if c != RANK_COLUMNS[by]]
+    keys = [SELECT_BY_COLUMN[by]] + [c for c in ("evidence", "n_inliers", "prior_score") if c != SELECT_BY_COLUMN[by]]
     ordered = out.sort_values(["scene_id", "im_id", "obj_id", *keys, "cand_id"],
                               ascending=[True, True, True] + [False] * len(keys) + [True])
     for (scene_id, im_id, obj_id), group in ordered.groupby(["scene_id", "im_id", "obj_id"], sort=False):
@@ -73,6 +73,6 @@ def select_estimates(
                 out.at[idx, "note"] = "beyond inst_count"
             else:
                 out.at[idx, "selected"] = True
-                out.at[idx, "rank"] = len(kept)
+                out.at[idx, "target_rank"] = len(kept)
                 kept.append((int(row["cand_id"]), t))
     return out

@@ -36,14 +36,14 @@ TERMS = ("silhouette", "depth_fit", "coverage", "free_space", "evidence")
 
 @dataclass(frozen=True)
 class Verification:
-    """The terms of one pose's verification (see the module docstring) and its score."""
+    """The terms of one pose's verification (see the module docstring) and its score (``value``)."""
 
     silhouette: float
     depth_fit: float
     coverage: float
     free_space: float
     evidence: float
-    score: float
+    value: float
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)

@@ -7,12 +7,12 @@ collinear), fits a rigid transform (closed form for 3 points, :func:`fit_triangl
 rejects fits that leave one of their own 3 points farther than the threshold
 ``inlier_frac * diameter``, and counts each survivor's feature inliers (correspondences
 within the threshold after the transform). The stopping rule follows the most feature
-inliers. With ``score="fitness"`` (default) the ``rescore_pool`` hypotheses with the
+inliers. With ``rank_by="fitness"`` (default) the ``rescore_pool`` hypotheses with the
 most feature inliers are then ranked by geometric fitness (the share of scene points with
 a model point within the threshold, on ``fitness_points`` of them) plus inlier ratio
 (feature inliers / correspondences); the best distinct ones are refitted on their
 inliers and ranked again by fitness (on every scene point) plus inlier ratio. With
-``score="inliers"`` (before issue 15) the most feature inliers win.
+``rank_by="inliers"`` (before issue 15) the most feature inliers win.
 
 Why: on the registration benchmark's views (benchmarks/coarse_vs_open3d.py), the pose
 with the most feature inliers was often wrong where the true pose had fewer feature
@@ -60,13 +60,13 @@ class RansacParams(BaseModel):
         best inlier ratio ``w`` makes ``log(1-confidence)/log(1-w^3)`` hypotheses enough.
     refine_iterations: Kabsch refits of the winner on its inliers.
     batch_size: hypotheses evaluated together (numpy backend).
-    score: how the numpy backend ranks its hypotheses. ``"fitness"``: the
+    rank_by: how the numpy backend ranks its hypotheses. ``"fitness"``: the
         ``rescore_pool`` hypotheses with the most feature inliers are ranked by geometric
         fitness (the share of ``fitness_points`` scene points with a model point within
         the threshold, as Open3D's RANSAC scores) plus inlier ratio; ``"inliers"``: by
         feature inliers alone (before issue 15).
-    rescore_pool / fitness_points: see ``score``.
-    final_candidates: with ``score="fitness"``, the best distinct hypotheses (at least
+    rescore_pool / fitness_points: see ``rank_by``.
+    final_candidates: with ``rank_by="fitness"``, the best distinct hypotheses (at least
         k) refitted on their inliers and ranked again by fitness (every scene point) plus
         inlier ratio.
     """
@@ -82,7 +82,7 @@ class RansacParams(BaseModel):
     confidence: float = Field(0.999, gt=0, lt=1)
     refine_iterations: int = Field(3, ge=0)
     batch_size: int = Field(1000, ge=1)
-    score: Literal["fitness", "inliers"] = "fitness"
+    rank_by: Literal["fitness", "inliers"] = "fitness"
     rescore_pool: int = Field(32, ge=1)
     fitness_points: int = Field(128, ge=1)
     final_candidates: int = Field(4, ge=1)
@@ -450,9 +450,9 @@ def ransac_hypotheses(
     model_points (N, 3) mm with model_feats (N, D); scene_points (M, 3) mm camera frame
     with scene_feats (M, D) (same feature space, e.g. :func:`fusion.fuse` outputs);
     diameter: object diameter in mm. The first pose is RANSAC's best (see the module
-    docstring for ``params.score``); the others are runners-up that survive non-maximum
+    docstring for ``params.rank_by``); the others are runners-up that survive non-maximum
     suppression in pose space (:func:`distinct_poses`: ``nms_deg`` degrees, ``nms_frac``
-    diameters), each refitted on its inliers. With ``score="fitness"``, the
+    diameters), each refitted on its inliers. With ``rank_by="fitness"``, the
     ``max(k, final_candidates)`` best distinct poses are refitted and the k with the
     highest fitness + inlier ratio returned, best first, so the first is the same for
     every k up to ``final_candidates`` (:func:`ransac_align` is k = 1). Deterministic for
@@ -474,12 +474,12 @@ def ransac_hypotheses(
     tree = cKDTree(mp)
     if params.backend == "numpy":
         rng = np.random.default_rng(seed)
-        if params.score == "fitness":
+        if params.rank_by == "fitness":
             found = _ransac_numpy(src, dst, thr, params, rng, pool=max(params.rescore_pool, k))
             found = [found[i] for i in _rank_by_fitness(found, len(corr), tree, sp, thr, params.fitness_points)]
         else:
             found = _ransac_numpy(src, dst, thr, params, rng, pool=64 * k if k > 1 else 1)
-        n = max(k, params.final_candidates) if params.score == "fitness" else k
+        n = max(k, params.final_candidates) if params.rank_by == "fitness" else k
         found = [found[i] for i in distinct_poses([(R, t) for _, R, t in found], n, nms_deg, nms_frac * diameter)]
     else:
         found = [(0, *_ransac_open3d(src, dst, thr, params, seed))]
@@ -503,7 +503,7 @@ def ransac_hypotheses(
             fitness=float(np.mean(dist < thr)),
             n_correspondences=int(len(corr)),
         ))
-    if params.backend == "numpy" and params.score == "fitness":
+    if params.backend == "numpy" and params.rank_by == "fitness":
         # The refit can lift a right pose's fitness well above a wrong one's that scored
         # the same on the subset: compare the refitted poses on every scene point.
         order = sorted(range(len(out)), key=lambda i: (-(out[i].fitness + out[i].inlier_ratio), i))
