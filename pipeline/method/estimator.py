@@ -72,7 +72,7 @@ class PreparedObject:
             if name not in self._given:
                 raise KeyError(f"object {self.obj_id}: its {name} was not given to the estimator")
             given = self._given[name]
-            self._values[name] = given() if callable(given) and not hasattr(given, "vertices") else given
+            self._values[name] = given() if callable(given) else given
         return self._values[name]
 
     mesh = property(lambda self: self._get("mesh"))
