@@ -51,7 +51,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.common.progress import progress_bar
     from pipeline.formats.bop.detections import prior_row_mask
     from pipeline.method.estimator import Estimator
-    from pipeline.method.scene_side import SceneImages, time_table
+    from pipeline.method.scene_side import SceneImages, packed_points, time_table
     from pipeline.workflow.plan import build_encoders, encoder_runtime
     from pipeline.workflow.prepared import prepared_objects
 
@@ -64,7 +64,6 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     registered = io.table("register", "coarse_hypotheses")
     registered = registered[registered.status == "ok"]
     scene = io.arrays("scene_features", "features", names=["points", "n_points", "cand_id"])
-    pos = {int(c): i for i, c in enumerate(scene["cand_id"])}
     boxes = io.table("segment_prior", "prior_candidates")
     boxes = boxes[boxes.scene_id == scene_id].set_index("cand_id")
     cams = bop.scene_camera(scene_id)
@@ -76,12 +75,11 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     images = SceneImages(rgb=lambda im_id: bop.load_rgb(scene_id, im_id),
                          depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
                          mesh=bop.load_model, candidate=candidate)
-    estimator = Estimator(prepared_objects(io, bop, features=("points", "normals"), symmetries=True, mesh=True),
+    estimator = Estimator(prepared_objects(io, bop, features=("points", "normals"), symmetries=True),
                           plan.run.stages, lambda: build_encoders(plan.run), image_mode=plan.dataset.image_mode)
     with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
             job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
-        refined = estimator.refine(registered, lambda c: scene["points"][pos[c], :int(scene["n_points"][pos[c]])],
-                                   images, targets, bar.advance, mapper)
+        refined = estimator.refine(registered, packed_points(scene), images, targets, bar.advance, mapper)
     with progress_bar(f"SAR {item}", total=len(refined.poses), enabled=progress) as bar:
         refined = estimator.refine_by_symmetry(refined, images, lambda n: bar.set_total(n) or bar.advance)
     table, poses = refined.candidates, refined.poses

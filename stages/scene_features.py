@@ -24,18 +24,17 @@ from pipeline.workflow.plan import DatasetPlan, build_encoders, encoder_runtime
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.common.progress import progress_bar
     from pipeline.formats.bop.detections import prior_row_mask
-    from pipeline.method.estimator import Estimator, Observation, PreparedObject
+    from pipeline.method.estimator import Estimator, Observation
     from pipeline.method.scene_side import CandidateMask, pack_candidates
+    from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("scene_features", item)
     scene_id, p = io.item_id(), io.params
     bop = io.bop()
-    infos = bop.models_info()
     cams = bop.scene_camera(scene_id)
     cands = io.table("segment_prior", "prior_candidates")
     cands = cands[(cands.scene_id == scene_id) & cands.im_id.isin(io.images())].sort_values("cand_id")
-    estimator = Estimator({o: PreparedObject(o, i.diameter) for o, i in infos.items()}, plan.run.stages,
-                          build_encoders(plan.run))
+    estimator = Estimator(prepared_objects(io, bop), plan.run.stages, build_encoders(plan.run))
     geo_enc, vis_enc = estimator.encoders
     found = {}
     image_rows = []
@@ -51,7 +50,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                     raise ValueError(f"{src}: detection {r.det_index} (scene {scene_id}, image {im_id}): "
                                      f"mask size {mask.shape} differs from the depth image {depth.shape}")
                 masks.append(CandidateMask(int(r.cand_id), int(r.obj_id), mask, (r.bbox_x, r.bbox_y, r.bbox_w, r.bbox_h),
-                                           infos[int(r.obj_id)].diameter, io.candidate_seed(int(r.cand_id), p.seed)))
+                                           estimator.objects[int(r.obj_id)].diameter,
+                                           io.candidate_seed(int(r.cand_id), p.seed)))
             obs = Observation(bop.load_rgb(scene_id, int(im_id)), depth, cams[int(im_id)].K)
             for f in estimator.scene_features(obs, masks, progress=bar.advance):
                 found[f.cand_id] = f

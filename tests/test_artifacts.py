@@ -40,8 +40,7 @@ def test_every_artifact_of_a_run_matches_its_declaration(tiny_run):
             kind = item_kind(item)
             folder = plan[stage].item_dir(item)
             files = {p.name for p in folder.iterdir() if p.name != MANIFEST_NAME}
-            declared = {f.replace("{results_csv}", plan.results_csv_name).replace("{dataset}", plan.name)
-                        for f in spec.writes_for(kind)}
+            declared = {plan.file_name(f) for f in spec.writes_for(kind)}
             assert files == declared, f"{stage}/{item}: files {sorted(files)}, declared {sorted(declared)}"
             for art in spec.artifacts_for(kind):
                 where = f"{stage}/{item}"

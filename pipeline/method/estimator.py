@@ -39,7 +39,7 @@ from pipeline.common.config import StageParams
 from pipeline.common.parallel import Mapper, ThreadMethod
 from pipeline.method.scene_side import (POSE_COLUMNS, SAR_COLUMNS, CandidateFeatures, CandidateMask, FineIcp,
                                         MatchableModel, PoseVerifier, Progress, SceneImages, _noop, choose_estimates,
-                                        matchable_model, pack_candidates, pca_arrays, refine_by_symmetry,
+                                        matchable_model, pack_candidates, packed_points, pca_arrays, refine_by_symmetry,
                                         refine_candidates, register_candidates, sar_transforms, scene_features)
 
 _UNSET = object()
@@ -312,7 +312,6 @@ class Estimator:
                               "status": ["ok" if f.ok else "skipped" for f in found],
                               "reason": [f.reason for f in found], "n_points": [len(f.points) for f in found]})
         registered = self.register(table, arrays, lambda c: _seed(seed, "register", int(c)))
-        rows = {int(c): i for i, c in enumerate(arrays["cand_id"])}
         images = SceneImages(rgb=lambda _: obs.rgb, depth=lambda _: obs.depth, K=lambda _: obs.K,
                              mesh=lambda o: self.objects[int(o)].mesh,
                              candidate=lambda c: (masks[int(c)].bbox, masks[int(c)].mask))
@@ -321,8 +320,7 @@ class Estimator:
             counts[int(d.obj_id)] = max(counts.get(int(d.obj_id), 0), int(d.inst_count))
         targets = [Target(scene_id, im_id, o, n) for o, n in sorted(counts.items())]
         ok = registered.table[registered.table.status == "ok"]
-        refined = self.refine(ok, lambda c: arrays["points"][rows[int(c)], :int(arrays["n_points"][rows[int(c)]])],
-                              images, targets)
+        refined = self.refine(ok, packed_points(arrays), images, targets)
         return Estimate(found, registered, self.refine_by_symmetry(refined, images))
 
     def _matchable_model(self, obj_id: int) -> MatchableModel:

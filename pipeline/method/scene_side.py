@@ -178,6 +178,17 @@ def scene_features(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, candidates
     return out
 
 
+def packed_points(arrays: Mapping[str, np.ndarray]) -> Callable[[int], np.ndarray]:
+    """cand_id -> that candidate's sampled points (k, 3) mm, from :func:`pack_candidates`'
+    arrays (``points``, ``n_points``, ``cand_id``)."""
+    row = {int(c): i for i, c in enumerate(arrays["cand_id"])}
+
+    def points(cand_id: int) -> np.ndarray:
+        i = row[int(cand_id)]
+        return arrays["points"][i, :int(arrays["n_points"][i])]
+    return points
+
+
 def pack_candidates(found: Sequence[CandidateFeatures], n_points: int, geo_dim: int, vis_dim: int) -> dict[str, np.ndarray]:
     """The ``features.zarr`` arrays of a scene: points (C, M, 3) float32 mm, pixels
     (C, M, 2) int32, geometric (C, M, G), visual (C, M, V) float32 (NaN / -1 beyond each

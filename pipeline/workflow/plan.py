@@ -254,6 +254,11 @@ class DatasetPlan:
     def results_csv_name(self) -> str:
         return f"{self.run.method}_{self.name}-{self.dataset.split}.csv"
 
+    def file_name(self, declared: str) -> str:
+        """A declared file name of this dataset: ``{results_csv}`` and ``{dataset}``
+        replaced (:attr:`pipeline.workflow.stage_graph.StageSpec.writes`)."""
+        return declared.replace("{results_csv}", self.results_csv_name).replace("{dataset}", self.name)
+
     def bop(self):
         """The dataset reader (:class:`pipeline.formats.bop.BopDataset`)."""
         return open_bop(self.root, self.dataset)
@@ -372,8 +377,7 @@ class StageIO:
         return item_seed(self.out.seed_key, name, seed)
 
     def allowed_files(self) -> set[str]:
-        return {w.replace("{results_csv}", self.plan.results_csv_name).replace("{dataset}", self.plan.name)
-                for w in self.spec.writes_for(self.kind)}
+        return {self.plan.file_name(w) for w in self.spec.writes_for(self.kind)}
 
     @contextmanager
     def publish(self) -> Iterator[Any]:
@@ -405,8 +409,7 @@ class StageWriter:
     def path(self, name: str) -> Path:
         """Where the artifact ``name`` of this item goes (for a kind :meth:`write` does not write)."""
         art = self._io.spec.artifact(name, self._io.kind)
-        return self._w.dir / art.file.replace("{results_csv}", self._io.plan.results_csv_name).replace(
-            "{dataset}", self._io.plan.name)
+        return self._w.dir / self._io.plan.file_name(art.file)
 
     def write(self, name: str, data: Any, **options: Any) -> Path:
         """Write ``data`` as the artifact ``name``: a table (DataFrame; Parquet with the

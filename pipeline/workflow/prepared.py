@@ -14,13 +14,13 @@ from pipeline.method.estimator import PreparedObject
 from pipeline.workflow.plan import StageIO, obj_item
 
 
-def prepared_objects(io: StageIO, bop, *, features: Sequence[str] | None = None, symmetries: bool = False,
-                     mesh: bool = False) -> dict[int, PreparedObject]:
+def prepared_objects(io: StageIO, bop, *, features: Sequence[str] | None = None,
+                     symmetries: bool = False) -> dict[int, PreparedObject]:
     """obj_id -> PreparedObject of every object in the dataset's models_info: its
     diameter (mm), and as loaders: ``features`` (the model_features arrays named, None:
     not given, ``()``: every array), with ``symmetries`` the estimated and near
-    symmetries of its ``symmetries.json`` and the declared ones of models_info, with
-    ``mesh`` the model (trimesh, mm)."""
+    symmetries of its ``symmetries.json`` and the declared ones of models_info. (The
+    stages render the meshes through their :class:`pipeline.method.scene_side.SceneImages`.)"""
     from pipeline.method.geometry.symmetry import SymmetrySet
     from pipeline.method.model_side import read_near_symmetries, read_symmetries
 
@@ -36,8 +36,6 @@ def prepared_objects(io: StageIO, bop, *, features: Sequence[str] | None = None,
             fields["symmetries"] = lambda o=obj_id: read_symmetries(_symmetries_json(io, o))
             fields["near_symmetries"] = lambda o=obj_id: read_near_symmetries(_symmetries_json(io, o))
             fields["declared"] = lambda info=info: SymmetrySet.from_model_info(info)
-        if mesh:
-            fields["mesh"] = lambda obj_id=obj_id: bop.load_model(obj_id)
         out[obj_id] = PreparedObject(obj_id, info.diameter, **fields)
     return out
 

@@ -24,9 +24,11 @@ from pipeline.workflow.stage_graph import STAGES, StageSpec
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
-WRITTEN = {"{results_csv}": "`<method>_<dataset>-<split>.csv` (the BOP results CSV)",
+SHOWN = {"{results_csv}": "<method>_<dataset>-<split>.csv", "{dataset}": "<dataset>/"}
+"""The placeholders of :attr:`StageSpec.writes` as file names in the docs."""
+WRITTEN = {"{results_csv}": f"`{SHOWN['{results_csv}']}` (the BOP results CSV)",
            "{dataset}": "the BOP dataset and its prior"}
-"""How the placeholders of :attr:`StageSpec.writes` read in the docs."""
+"""How the placeholders read in the stage table's writes column."""
 
 EXTERNAL_NOTES = {"source": "the real sample of a semi-real dataset"}
 """A few words on the external inputs a reader may not guess (``dataset`` and ``prior``
@@ -129,8 +131,7 @@ def artifact_list(specs: Mapping[str, StageSpec] = STAGES) -> str:
     for name, s in specs.items():
         for kind in s.items:
             for a in s.artifacts_for(kind):
-                shown = {"{results_csv}": "<method>_<dataset>-<split>.csv", "{dataset}": "<dataset>/"}.get(a.file, a.file)
-                out += [f"### {name} {_item_words(kind)} `{shown}`", "",
+                out += [f"### {name} {_item_words(kind)} `{SHOWN.get(a.file, a.file)}`", "",
                         f"`{a.name}` ({a.kind}): {a.doc}.", ""]
                 if a.kind == "table":
                     out += ["| column | dtype | meaning |", "|---|---|---|"]

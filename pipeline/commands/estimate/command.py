@@ -85,7 +85,7 @@ def frame_run_plan(run, frame, cache: Path | None = None):
 
 def _item(stage: str, scene: str) -> str:
     """The frame's item of a scene-side stage: ``all`` for a dataset-wide one (segment_prior)."""
-    return "all" if STAGES[stage].items[0] == "all" else scene
+    return "all" if STAGES[stage].item_kind == "all" else scene
 
 
 def run_stages(plan, stages_items: Sequence[tuple[str, str]], steps) -> dict[str, bool]:
