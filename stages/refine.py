@@ -81,7 +81,9 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
             job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
         refined = estimator.refine(registered, packed_points(scene), images, targets, bar.advance, mapper)
     with progress_bar(f"SAR {item}", total=len(refined.poses), enabled=progress) as bar:
-        refined = estimator.refine_by_symmetry(refined, images, lambda n: bar.set_total(n) or bar.advance)
+        pca = io.arrays("register", "pca", names=["obj_id", "informative"])
+        untextured = {int(o) for o, ok in zip(pca["obj_id"], pca["informative"]) if not ok}
+        refined = estimator.refine_by_symmetry(refined, images, lambda n: bar.set_total(n) or bar.advance, untextured)
     table, poses = refined.candidates, refined.poses
     with io.publish() as w:
         if refined.sar_encoder is not None:  # SAR's encoder passes: where and in what precision (recorded, not keyed)

@@ -310,3 +310,26 @@ def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wr
             assert chosen.source == "turn" and chosen.parent == 0 and chosen.hyp >= 1
             assert chosen.n_inliers == 0 and chosen.evidence == 0.0
             assert (hyps.source == "turn").sum() == 3 and (hyps[hyps.source == "turn"].parent == 0).all()
+
+
+def test_a_skipped_candidates_register_row_keeps_the_declared_dtypes():
+    """semilmo has candidates skipped for too few points: their one row must not turn the
+    integer columns into floats (the declaration refused it, and register failed)."""
+    from pipeline.method.scene_side import register_candidates
+    from pipeline.workflow.artifact_schema import COARSE_HYPOTHESES, check_table
+
+    features, scene, sf, R, t = _problem(4, {"geometric": 0.3, "visual": 0.3})
+    n = len(scene)
+    candidates = pd.DataFrame({"cand_id": [0, 1], "scene_id": 1, "im_id": 0, "obj_id": 5, "prior_score": 0.9,
+                               "status": ["ok", "skipped"], "reason": ["", "12 points < min_points 100"],
+                               "n_points": [n, 0]})
+    arrays = {"cand_id": np.array([0, 1]), "points": np.stack([scene, np.zeros_like(scene)]),
+              "geometric": np.stack([sf["geometric"], np.zeros_like(sf["geometric"])]),
+              "visual": np.stack([sf["visual"], np.zeros_like(sf["visual"])])}
+    table, _ = register_candidates(candidates, arrays, lambda o: matchable_model(features, 64), {5: 250.0},
+                                   RegisterParams(), lambda c: 0)
+    check_table(COARSE_HYPOTHESES, table, "test")  # raises on a column of another dtype
+    skipped = table[table.cand_id == 1].iloc[0]
+    assert (skipped.status, skipped.source_rank, skipped.n_inliers, skipped.hyp) == ("skipped", -1, 0, 0)
+    ok = table[table.cand_id == 0]
+    assert rotation_angle_deg(np.asarray(ok.iloc[0].R).reshape(3, 3), R) < 1.0

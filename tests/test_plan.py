@@ -102,6 +102,8 @@ def test_short_encoder_keys_none_and_weights_dir(tmp_path):
 # refine (8 -> 9), which changed their keys, and score's, which follows refine's; the
 # random draws come from the seed keys (StagePlan.seed_key), which are the keys before
 # issue 29 (MAIN_JOB_SEED_KEYS), so every value in every artifact stayed the same.
+# Issue 30 (SAR skips untextured models) bumped refine (9 -> 10): refine's and score's keys
+# changed, their seed keys did not.
 MAIN_JOB_KEYS = {
     "synth": "42e22634980724b4b02cc270abefe72cd6af6e03",
     "render_templates": "4c687dcea59bf855850770f05da8aafca91cd386",
@@ -110,8 +112,8 @@ MAIN_JOB_KEYS = {
     "segment_prior": "4a14217dd176647e1b98d9ec86ec8a85f58ea295",
     "scene_features": "af3ff781b440ad7c2e852f5269dc4d6ae7364a2a",
     "register": "607d9ce2a11874799482e4c56618510af66f9291",
-    "refine": "c46b5039d913049aeb97583a2421f228ee968c62",
-    "score": "8b301da9b154d1a3a6964c5052ce5e8617be3482",
+    "refine": "d46c854b2098bcfbec511c5cfd0e45e9b3e25901",
+    "score": "8ed16e9cc0ec53569384c591d5825e45c07cc223",
 }
 MAIN_JOB_SEED_KEYS = {
     **MAIN_JOB_KEYS,
@@ -127,7 +129,7 @@ MAIN_JOB_SEED_KEYS = {
 def test_main_job_keys_are_pinned():
     plan = RunPlan(cfg.load_run({}))["synthmini"]
     assert {s: sp.key for s, sp in plan.stages.items()} == MAIN_JOB_KEYS
-    assert plan["refine"].signature == "icp+sar-byverification-c46b5039"
+    assert plan["refine"].signature == "icp+sar-byverification-d46c854b"
 
 
 def test_main_job_seed_keys_are_the_keys_before_the_renames():

@@ -20,7 +20,7 @@ import typer
 from typer.testing import CliRunner
 
 from conftest import current_dir
-from pipeline.views.html import CORRECT_MSSD_FRAC, PANEL_SIZE, choose_samples
+from pipeline.views.html import CORRECT_MSSD_FRAC, PANEL_SIZE, choose_samples, worst_samples
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 SAMPLES = 4
@@ -48,6 +48,17 @@ def test_choose_samples_spreads_over_objects_and_mixes_correct_and_wrong():
     # Objects 2 and 3 alone: wrong (no correct one in object 2), correct, wrong.
     got = choose_samples(table[table.obj_id > 1], 3)
     assert sorted(got.correct.tolist()) == [False, False, True]
+
+
+def test_worst_samples_are_the_farthest_wrong_estimates_spread_over_objects():
+    table = _table([(1, 0, False), (1, 1, False), (1, 2, False), (2, 0, False), (2, 1, True), (3, 0, False)])
+    table["mssd_frac"] = [3.0, 2.0, 1.5, 0.4, 0.05, np.nan]  # object 3's estimate has no ground truth to match
+    table["score"] = [0.1, 0.9, 0.5, 0.5, 0.5, 0.2]
+    got = worst_samples(table, 4)
+    # the unmatched one first, then object 1's two farthest (half of 4), then object 2's wrong one
+    assert list(zip(got.obj_id, got.im_id)) == [(3, 0), (1, 0), (1, 1), (2, 0)]
+    assert not got.correct.any() and "_far" not in got.columns
+    assert worst_samples(table, 0).empty and len(worst_samples(table, 10)) == 5
 
 
 def _app() -> typer.Typer:

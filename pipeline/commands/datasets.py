@@ -1,7 +1,9 @@
 """Checking BOP datasets on disk before a long run (``freeze datasets check ROOT``).
 
 For every dataset manifest of kind ``bop`` whose folder exists under ``ROOT`` (the
-``bop_root``), :func:`check_dataset` reads what the stages will read and reports, as
+``bop_root``), and every real-sample manifest (kind ``real``) whose ``source`` is
+``ROOT`` (``freeze datasets check ../shared/realdata/ycbv-real-train`` checks
+``realycbv``), :func:`check_dataset` reads what the stages will read and reports, as
 plain findings naming the file and the field:
 
 - the files every stage needs: the camera file, the model folder of the manifest
@@ -17,7 +19,7 @@ plain findings naming the file and the field:
   disagrees with models_info's diameter (a model in metres beside a diameter in mm);
 - the cameras of every target scene by the reader's rule (the stages refuse the same):
   ``cam_K`` a plausible pinhole matrix (:func:`pipeline.formats.bop.dataset.intrinsics_problem`),
-  ``depth_scale`` positive;
+  ``depth_scale`` positive, and the manifest's ``depth_scale`` where it states one;
 - targets whose image is missing; targets of objects without a model; targets listed
   twice (a warning; counted once, as the scorer does); scenes without ground truth
   (expected where it is private: ITODD, HB); the ground truth the scorer will read
@@ -137,6 +139,7 @@ def check_dataset(bop_root: Path, manifest, priors: list[str] | None = None, *, 
                             f"{len(scenes)} target scenes lack ground truth): estimates will be made, but no AR")
     if manifest.public_gt:  # what the score stage reads (and segment_prior refuses at the start of a run)
         rep.errors.extend(bop.ground_truth_problems(targets))
+    _check_depth_scale(rep, bop, manifest, scenes)
     n_detections = _check_priors(rep, Path(bop_root), manifest, priors, diameters, targets)
     per_target = Counter(t.inst_count for t in targets)
     rep.summary = {
@@ -433,6 +436,24 @@ def _check_images(rep: DatasetReport, bop, manifest, images: list[tuple[int, int
     return missing_images, sizes
 
 
+def _check_depth_scale(rep: DatasetReport, bop, manifest, scenes: list[int]) -> None:
+    """Every camera entry of the target scenes declares the manifest's ``depth_scale``,
+    when it states one (one error per scene: the first image that departs)."""
+    if manifest.depth_scale is None:
+        return
+    for s in scenes:
+        try:
+            cams = bop.scene_camera(s)
+        except (ValueError, OSError):
+            continue  # reported by the image checks
+        for im_id, cam in sorted(cams.items()):
+            if not math.isclose(cam.depth_scale, manifest.depth_scale, rel_tol=1e-6):
+                rep.errors.append(f"{bop.scene_dir(s) / 'scene_camera.json'}: image {im_id}: field 'depth_scale' is "
+                                  f"{cam.depth_scale}, but manifests/datasets/{manifest.name}.yaml states "
+                                  f"{manifest.depth_scale}")
+                break
+
+
 def _check_priors(rep: DatasetReport, bop_root: Path, manifest, priors: list[str] | None, infos: dict,
                   targets: list) -> int | None:
     """Each prior file: found, parseable, category ids that are objects, coverage of the
@@ -486,15 +507,24 @@ def _check_priors(rep: DatasetReport, bop_root: Path, manifest, priors: list[str
 def check_root(bop_root: Path, priors: list[str] | None = None, *, deep: bool = False,
                progress: bool = False) -> tuple[list[DatasetReport], list[str]]:
     """Reports for every BOP dataset manifest whose folder exists under ``bop_root``,
-    and the names of those whose folder is absent. ``deep``: see :func:`check_dataset`;
-    ``progress`` shows rich progress bars on stderr while models and images are opened."""
-    from pipeline.common.config import MANIFEST_DIR, load_dataset_manifest
+    and the names of those whose folder is absent. A real-sample manifest (kind
+    ``real``) whose ``source`` is ``bop_root`` is checked too, with its exact prior
+    (``source_prior``) unless ``priors`` names others, and a folder it claims is not
+    also checked as the BOP dataset of that name (the YCB-V sample has ``ycbv/`` but not
+    YCB-V's test split). ``deep``: see :func:`check_dataset`; ``progress`` shows rich
+    progress bars on stderr while models and images are opened."""
+    from pipeline.common.config import MANIFEST_DIR, load_dataset_manifest, shared_root
 
+    manifests = [load_dataset_manifest(p.stem) for p in sorted((MANIFEST_DIR / "datasets").glob("*.yaml"))]
+    here = Path(bop_root).resolve()
+    samples = [m for m in manifests if m.kind == "real" and (shared_root() / m.source).resolve() == here]
+    claimed = {m.folder for m in samples}
     reports, absent = [], []
     with _bars(progress) as bar:
-        for path in sorted((MANIFEST_DIR / "datasets").glob("*.yaml")):
-            man = load_dataset_manifest(path.stem)
-            if man.kind != "bop":
+        for man in samples:
+            reports.append(check_dataset(Path(bop_root), man, priors or [man.source_prior], deep=deep, bar=bar))
+        for man in manifests:
+            if man.kind != "bop" or (man.folder or man.name) in claimed:
                 continue
             if (Path(bop_root) / (man.folder or man.name)).is_dir():
                 reports.append(check_dataset(Path(bop_root), man, priors, deep=deep, bar=bar))

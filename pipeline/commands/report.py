@@ -41,6 +41,7 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         out: Optional[Path] = typer.Option(None, help="HTML file to write (default <cache>/../results/report_<dataset>.html)"),
         config: Optional[list[str]] = typer.Option(None, "--config", "-c", help="run overrides key=value"),
         samples: int = typer.Option(12, min=0, help="estimates drawn over their images"),
+        worst: int = typer.Option(0, min=0, help="also draw this many of the worst estimates (largest MSSD / d)"),
         run_json: Optional[str] = typer.Option(None, envvar="FREEZE_RUN_JSON", help="resolved run manifest as JSON "
                                                "(Snakemake passes it in $FREEZE_RUN_JSON; --config is then ignored)"),
     ) -> None:
@@ -68,7 +69,7 @@ def add_commands(app: typer.Typer, show_app: typer.Typer) -> None:
         t0 = time.perf_counter()
         try:
             check_output_file(path, "--out" if out else "")  # a folder given as --out: said before the work
-            write_report(rp, dataset, path, samples=samples, run_label=label)
+            write_report(rp, dataset, path, samples=samples, run_label=label, worst=worst)
         except StorageError as e:  # that, or a read-only or full disk: one line naming the file
             console.print(error_line(e), style="red", markup=False)
             raise typer.Exit(1)

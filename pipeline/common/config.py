@@ -4,7 +4,8 @@ Three kinds of YAML manifest live in ``manifests/``:
 
 - ``runs/<name>.yaml``: what ``bop_all`` runs: the method name, the datasets, which
   encoder manifests to use, and the parameters of every stage.
-- ``datasets/<name>.yaml``: one dataset (synthetic preset or a BOP dataset on disk).
+- ``datasets/<name>.yaml``: one dataset (a synthetic preset, a semi-real or real one
+  built from a sample under ``../shared``, or a BOP dataset on disk).
 - ``encoders/<name>.yaml``: one encoder configuration (registry name + parameters); it
   may ``extends:`` a shared part in ``encoders/base/`` (which is not an encoder itself).
 
@@ -253,13 +254,44 @@ class WeightDownload(_Strict):
         return value
 
 
+class PriorFaultRates(_Strict):
+    """The rates of a real dataset's faulty prior, every one stated in its manifest
+    (:class:`pipeline.evaluation.synth.detector_faults.DetectorFaults` says what each does)."""
+
+    miss: float = Field(..., ge=0, le=1, description="probability that an instance gets no detection")
+    erode: float = Field(..., ge=0, le=1, description="probability that a kept mask is eroded")
+    dilate: float = Field(..., ge=0, le=1, description="probability that a kept mask is dilated")
+    max_morph_px: int = Field(..., ge=1, description="erosion/dilation radius: 1 to this many px")
+    occlusion_cut: float = Field(..., ge=0, le=1, description="probability that a kept mask is cut by a straight "
+                                                              "occluding edge")
+    cut_fraction: tuple[float, float] = Field(..., description="range of the fraction of the mask such a cut removes")
+    wrong_label: float = Field(..., ge=0, le=1, description="probability that an instance is labelled as another "
+                                                            "object present in the image")
+    stray_per_image: float = Field(..., ge=0, description="mean number (Poisson) of detections per image of "
+                                                          "objects absent from it")
+    score_quality_weight: float = Field(..., ge=0, le=1, description="weight of the mask's quality (IoU) in its "
+                                                                     "score; the rest is uniform noise")
+    min_pixels: int = Field(60, ge=1, description="masks smaller than this are kept as they are")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "PriorFaultRates":
+        lo, hi = self.cut_fraction
+        if not 0.0 < lo <= hi < 1.0:
+            raise ValueError(f"cut_fraction is {list(self.cut_fraction)}: 0 < low <= high < 1")
+        if self.erode + self.dilate > 1.0:
+            raise ValueError(f"erode + dilate is {self.erode + self.dilate}: at most 1")
+        return self
+
+
 class DatasetManifest(_Strict):
     """One dataset: a synthetic preset made by ``freeze synth``, a semi-real dataset built
-    from a real sample (``source``, under :func:`shared_root`), or a BOP dataset on disk.
-    Synthetic and semi-real datasets are built by the ``synth`` stage."""
+    from a real sample (``source``, under :func:`shared_root`), a real dataset sample
+    there (kind ``real``: a bop_root-style folder, copied with its shipped prior and a
+    faulty prior derived from it), or a BOP dataset on disk. Synthetic, semi-real and
+    real-sample datasets are built by the ``synth`` stage."""
 
     name: str
-    kind: Literal["synthetic", "bop", "semireal"]
+    kind: Literal["synthetic", "bop", "semireal", "real"]
     split: str = "test"
     split_type: str | None = None
     targets_file: str = "test_targets_bop19.json"
@@ -275,6 +307,12 @@ class DatasetManifest(_Strict):
     gt_prior: Literal["faulty", "exact"] = Field(
         "faulty", description="semi-real: prior from the ground-truth visible masks with the synthetic prior's faults, "
                               "or exact")
+    # real-sample datasets (pipeline/evaluation/synth/real_sample.py); `folder` names the
+    # dataset folder inside `source`
+    source_prior: str | None = Field(None, description="real: the sample's exact prior, relative to source")
+    prior_faults: PriorFaultRates | None = Field(None, description="real: the rates of the derived faulty prior")
+    depth_scale: float | None = Field(None, gt=0, description="mm per depth unit that every scene_camera entry must "
+                                                             "declare (checked; None: not checked)")
     # where the localisation prior lives; relative to the dataset root (synthetic) or
     # to bop_root (real datasets); may hold glob characters (must match one file) and
     # a "{detector}" placeholder filled from `detector` or the run's `priors`
@@ -480,8 +518,12 @@ def load_dataset_manifest(name: str, manifest_dir: Path = MANIFEST_DIR) -> Datas
         raise ManifestError(f"{path}: field 'name' is '{ds.name}' but the file is named '{name}'")
     if ds.kind == "synthetic" and not ds.preset:
         raise ManifestError(f"{path}: field 'preset' is required for synthetic datasets")
-    if ds.kind == "semireal" and not ds.source:
-        raise ManifestError(f"{path}: field 'source' is required for semi-real datasets")
+    if ds.kind in ("semireal", "real") and not ds.source:
+        raise ManifestError(f"{path}: field 'source' is required for {ds.kind} datasets")
+    if ds.kind == "real":
+        for name_ in ("folder", "source_prior", "prior_faults"):
+            if getattr(ds, name_) is None:
+                raise ManifestError(f"{path}: field '{name_}' is required for real datasets")
     return ds
 
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Collection, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -262,11 +262,14 @@ class Estimator:
         return Refined(hypotheses, table, poses, pd.DataFrame(columns=SAR_COLUMNS), image_time)
 
     def refine_by_symmetry(self, refined: Refined, images: SceneImages,
-                           progress: Callable[[int], Progress] | None = None) -> Refined:
+                           progress: Callable[[int], Progress] | None = None,
+                           untextured: Collection[int] | None = None) -> Refined:
         """Symmetry-aware refinement of :meth:`refine`'s kept estimates
         (:func:`pipeline.method.scene_side.refine_by_symmetry`): their poses and SAR's
         columns updated, SAR's variants and time added. progress(n) gives the callback
-        for the n estimates SAR runs on."""
+        for the n estimates SAR runs on. untextured: the objects whose visual features
+        carry no signal, which SAR skips (None: found from their model features by
+        register's PCA test; the refine stage reads register's ``pca.zarr`` instead)."""
         p, poses = self.stages.refine, refined.poses
         rows: list[dict] = []
         vis = None
@@ -275,9 +278,13 @@ class Estimator:
                                             self.objects[o].diameter, p)
                           for o in sorted(set(poses.obj_id.astype(int)))}
             vis = self.encoders[1] if p.sar else None
+            # SAR tells symmetric poses apart by the model's texture: a model whose visual
+            # features carry no signal (register's PCA test) has none to tell them by
+            if untextured is None:
+                untextured = {o for o in transforms if vis is not None and self._matchable_model(o).visual is None}
             rows = refine_by_symmetry(poses, transforms, images.keeping_last(), vis, p,
                                       self.stages.scene_features.crop_margin, self.image_mode, refined.image_time,
-                                      progress)
+                                      progress, untextured=untextured)
         return Refined(refined.hypotheses, refined.candidates, poses[POSE_COLUMNS].reset_index(drop=True),
                        pd.DataFrame(rows, columns=SAR_COLUMNS), refined.image_time, vis)
 

@@ -488,13 +488,30 @@ def _recall_table(recalls: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
-def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = None) -> str:
+def worst_samples(table: pd.DataFrame, n: int) -> pd.DataFrame:
+    """The ``n`` wrong estimates of ``table`` (see :func:`estimate_table`) farthest from
+    their ground truth: largest MSSD in diameters first (an estimate with no ground
+    truth to compare with, infinitely far), ties by the higher score; at most
+    ``ceil(n / 2)`` of one object, so one bad object does not fill the sample."""
+    if n <= 0 or table.empty:
+        return table.iloc[0:0]
+    wrong = table[~table["correct"]].copy()
+    wrong["_far"] = wrong["mssd_frac"].fillna(np.inf)
+    wrong = wrong.sort_values(["_far", "score", "scene_id", "im_id", "obj_id", "est_id"],
+                              ascending=[False, False, True, True, True, True], kind="stable")
+    cap = -(-n // 2)
+    picked = wrong.groupby("obj_id", sort=False).head(cap).head(n)
+    return picked.drop(columns="_far")
+
+
+def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = None, worst: int = 0) -> str:
     """The report page of ``dataset`` under the run plan ``rp`` (a
     :class:`pipeline.workflow.plan.RunPlan`), as an HTML string.
 
-    samples: number of estimates drawn over their images. run_label: how the run was
-    chosen (e.g. ``manifests/runs/default.yaml + visual=dinov2-vits14``), shown in the
-    intro; the resolved run manifest is always at the end of the page.
+    samples: number of estimates drawn over their images. worst: number of the worst
+    estimates (:func:`worst_samples`) drawn in a section of their own. run_label: how
+    the run was chosen (e.g. ``manifests/runs/default.yaml + visual=dinov2-vits14``),
+    shown in the intro; the resolved run manifest is always at the end of the page.
     """
     t0 = time.perf_counter()
     plan = rp[dataset]
@@ -505,6 +522,7 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
     table = empty_estimate_table() if no_gt else estimate_table(plan)
     chosen = choose_samples(table, samples)
     panels = draw_samples(plan, chosen)
+    worst_panels = draw_samples(plan, worst_samples(table, worst))
     sar = sar_figures(plan)
     hyp_png = hypotheses_png(plan)
     timings = stage_timings(plan)
@@ -514,6 +532,7 @@ def build_report(rp, dataset: str, samples: int = 12, run_label: str | None = No
         *_visibility_section(scores),
         *_timing_section(timings),
         *_samples_section(table, panels, no_gt),
+        *_worst_section(worst_panels, worst),
         *_hypotheses_section(plan, hyp_png),
         *_sar_section(sar),
     ]
@@ -652,6 +671,23 @@ def _samples_section(table: pd.DataFrame, panels: list[PosePanel], no_gt: bool) 
     return out
 
 
+def _worst_section(panels: list[PosePanel], asked: int) -> list[str]:
+    """Section 4b, when asked for: the worst estimates drawn as in section 4."""
+    if asked <= 0:
+        return []
+    out = ["<h3>4b. The worst estimates</h3>",
+           f'<p class="note">The {len(panels)} wrong estimates farthest from their ground truth (largest MSSD in '
+           f'diameters, at most half of them of one object; {asked} asked for). <code>freeze show hypotheses '
+           f'--scene S</code> draws every hypothesis of their candidates.</p>']
+    if panels:
+        out.append('<div class="grid">')
+        for p in panels:
+            out.append(f'<figure class="sample wrong">{_img(p.png, p.caption)}<figcaption>{_e(p.caption)}'
+                       f'</figcaption></figure>')
+        out.append("</div>")
+    return out
+
+
 def _hypotheses_section(plan, hyp_png: bytes | None) -> list[str]:
     """Section 5: hypotheses per source (chosen, mean score), each modality's signal and
     fusion weight per object, and the figure of the hypotheses (``hyp_png``, if any)."""
@@ -704,10 +740,12 @@ def _sar_section(sar: list[tuple[int, bytes, int]]) -> list[str]:
     return out
 
 
-def write_report(rp, dataset: str, out: Path, samples: int = 12, run_label: str | None = None) -> Path:
+def write_report(rp, dataset: str, out: Path, samples: int = 12, run_label: str | None = None,
+                 worst: int = 0) -> Path:
     """Write the report page of ``dataset`` (see :func:`build_report`) to ``out``
     atomically (a temporary sibling renamed into place), with the mode the umask gives a
     new file (0644 under umask 022); returns ``out``."""
     from pipeline.common.published_files import write_text_published
 
-    return write_text_published(Path(out), build_report(rp, dataset, samples=samples, run_label=run_label))
+    return write_text_published(Path(out), build_report(rp, dataset, samples=samples, run_label=run_label,
+                                                        worst=worst))

@@ -129,7 +129,8 @@ COARSE_HYPOTHESES = Artifact("coarse_hypotheses", "coarse_hypotheses.parquet", "
                                  F("status", "str", "ok or skipped"), F("reason", "str", "why it was skipped"),
                                  F("hyp", "int64", "hypothesis index within the candidate"),
                                  F("source", "str", "geometric, visual, fused or weighted matches"),
-                                 F("source_rank", "int64", "rank among the hypotheses of its source"),
+                                 F("source_rank", "int64", "rank among the hypotheses of its source (-1: a "
+                                                           "skipped candidate's row)"),
                                  F("w_geometric", "float64", "the candidate's fusion weight of the geometric part"),
                                  F("w_visual", "float64", "the candidate's fusion weight of the visual part"),
                                  F("signal_geometric", "float64", "held-out signal (z-score) of the geometric part"),

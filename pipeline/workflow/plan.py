@@ -31,6 +31,10 @@ STAGES = tuple(stage_graph.STAGES)
 """Stage names in graph order (declared in :mod:`pipeline.workflow.stage_graph`)."""
 
 
+BUILT_KINDS = ("synthetic", "semireal", "real")
+"""Dataset kinds the synth stage builds (the others are BOP datasets on disk)."""
+
+
 def cache_root() -> Path:
     """Root of the artifact store: ``$FREEZE_CACHE`` or ``<project>/cache``."""
     return Path(os.environ.get("FREEZE_CACHE", cfg.PROJECT_ROOT / "cache")).resolve()
@@ -239,7 +243,7 @@ class DatasetPlan:
     @property
     def prior_paths(self) -> list[Path]:
         """The localisation prior files (several are merged by segment_prior)."""
-        base = self.root if self.dataset.kind in ("synthetic", "semireal") else Path(self.run.bop_root or ".")
+        base = self.root if self.dataset.kind in BUILT_KINDS else Path(self.run.bop_root or ".")
         return [resolve_prior(base, pattern) for pattern in self.dataset.prior_patterns(self.run.priors)]
 
     @property
@@ -516,6 +520,21 @@ def _semireal_layout(source: Path) -> tuple[list[int], dict[int, list[int]]]:
     return _target_layout(BopDataset(source).targets())
 
 
+def _real_layout(source: Path, ds: cfg.DatasetManifest) -> tuple[list[int], dict[int, list[int]]]:
+    """(target objects, {target scene: image ids}) of a real sample (kind ``real``): the
+    targets file of its dataset folder."""
+    root = source / ds.folder
+    return _target_layout(open_bop(root, ds).targets(root / ds.targets_file))
+
+
+def source_files(source: Path, ds: cfg.DatasetManifest) -> list[Path]:
+    """The files of a semi-real or real dataset's sample that its synth stage reads: the
+    dataset folder and the exact prior of a real one, the whole sample of a semi-real one."""
+    if ds.kind == "real":
+        return [source / ds.folder / ds.targets_file, source / ds.source_prior]
+    return [source / "test_targets_bop19.json"]
+
+
 def _tree_sha1(folder: Path) -> str:
     """SHA-1 over the relative paths and bytes of every file under ``folder`` (a real
     sample of a few tens of MB: hashed whole, about 0.1 s)."""
@@ -611,11 +630,15 @@ class RunPlan:
         ds = self.manifest(name)
         if ds.kind == "synthetic":
             return True, ""
-        if ds.kind == "semireal":
+        if ds.kind in ("semireal", "real"):
             source = cfg.shared_root() / ds.source
-            if not (source / "test_targets_bop19.json").is_file():
-                return False, (f"{ds.name}: skipped, its real sample {source} is not here (semi-real datasets are built "
+            if not source.is_dir():
+                return False, (f"{ds.name}: skipped, its real sample {source} is not here ({ds.kind} datasets are built "
                                "from ../shared/realdata; $FREEZE_SHARED points elsewhere)")
+            missing = [p for p in source_files(source, ds) if not p.is_file()]
+            if missing:  # the sample is here but incomplete: that is an error, not a skip
+                raise cfg.ManifestError(f"{missing[0]}: not found in the real sample of dataset '{ds.name}' "
+                                        f"(manifests/datasets/{ds.name}.yaml)")
             return True, ""
         if not self.run.bop_root:
             return False, f"{ds.name}: skipped, no bop_root set (--config bop_root=/path/to/bop, or $BOP_ROOT)"
@@ -675,7 +698,7 @@ class RunPlan:
         run = self.run
         ctx = PlanContext(run=run, dataset=ds, encoder_entries=lambda: self.encoders)
         stages: dict[str, StagePlan] = {}
-        if ds.kind in ("synthetic", "semireal"):
+        if ds.kind in BUILT_KINDS:
             spec = stage_graph.spec("synth")
             if ds.kind == "synthetic":
                 source_key = {}
@@ -683,11 +706,16 @@ class RunPlan:
             else:
                 source = cfg.shared_root() / ds.source
                 source_key = {"source": _tree_sha1(source)}
-                obj_ids, scene_images = _semireal_layout(source)
+                obj_ids, scene_images = (_real_layout(source, ds) if ds.kind == "real" else _semireal_layout(source))
             synth = self._stage(name, "synth", spec.plan_label(ctx), spec.plan_params(ctx), source_key)
             stages["synth"] = synth
             root = synth.item_dir("dataset") / name
             dataset_key = models_key = prior_key = synth.key
+            patterns = ds.prior_patterns(run.priors)
+            if patterns != ds.prior_patterns(None):
+                # a built dataset's prior is part of its synth artifact; another of its
+                # priors (realycbv's faulty one) keys the stages that read it apart
+                prior_key = make_key("prior", 1, {"patterns": patterns}, {"dataset": synth.key})
         else:
             if not run.bop_root:
                 raise cfg.ManifestError(f"dataset '{name}' is a BOP dataset on disk: set bop_root (--config bop_root=/path)")

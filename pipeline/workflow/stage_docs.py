@@ -30,7 +30,7 @@ WRITTEN = {"{results_csv}": f"`{SHOWN['{results_csv}']}` (the BOP results CSV)",
            "{dataset}": "the BOP dataset and its prior"}
 """How the placeholders read in the stage table's writes column."""
 
-EXTERNAL_NOTES = {"source": "the real sample of a semi-real dataset"}
+EXTERNAL_NOTES = {"source": "the real sample of a semi-real or real-sample dataset"}
 """A few words on the external inputs a reader may not guess (``dataset`` and ``prior``
 are the docs' own words)."""
 
@@ -54,13 +54,13 @@ class Block:
 def job_per(stage: str | StageSpec, kind: str) -> str:
     """What one job of ``stage`` for items of ``kind`` covers: ``object``, ``scene``, or
     ``dataset (item `all`)``, with the declaration's note on that kind and whether the
-    stage runs for synthetic and semi-real datasets only."""
+    stage runs for the datasets it builds only (synthetic, semi-real, real samples)."""
     s = STAGES[stage] if isinstance(stage, str) else stage
     if kind in ("obj", "scene"):
         word = {"obj": "object", "scene": "scene"}[kind]
         return f"{word} ({s.notes[kind]})" if kind in s.notes else word
     note = (f": {s.notes[kind]}" if kind in s.notes else "") + (
-        "; synthetic and semi-real datasets only" if s.synthetic_only else "")
+        "; synthetic, semi-real and real-sample datasets only" if s.synthetic_only else "")
     return f"dataset (item `{kind}`{note})"
 
 

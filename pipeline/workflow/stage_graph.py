@@ -273,7 +273,7 @@ def _look_at(c: PlanContext) -> dict[str, str]:
     are centred on it by construction (tests/test_synth.py checks it), so their
     templates are those made before this rule, under the same key; on a BOP dataset a
     model off its origin gets other templates, hence the parameter in its key."""
-    return {"look_at": "bbox_centre"} if c.dataset.kind == "bop" else {}
+    return {"look_at": "bbox_centre"} if c.dataset.kind in ("bop", "real") else {}
 
 
 def prior_label(paths: list[Path]) -> str:
@@ -290,6 +290,8 @@ def _synth_label(c: PlanContext) -> str:
     ds = c.dataset
     if ds.kind == "semireal":
         return f"semireal-{ds.depth}-{ds.gt_prior}-seed{ds.seed}"
+    if ds.kind == "real":
+        return f"real-seed{ds.seed}"
     return f"{ds.preset}-seed{ds.seed}"
 
 
@@ -297,6 +299,10 @@ def _synth_params(c: PlanContext) -> dict[str, Any]:
     ds = c.dataset
     if ds.kind == "semireal":
         return {"builder": "semireal", "source": ds.source, "depth": ds.depth, "gt_prior": ds.gt_prior, "seed": ds.seed}
+    if ds.kind == "real":
+        return {"builder": "real", "source": ds.source, "folder": ds.folder, "source_prior": ds.source_prior,
+                "split": ds.split, "targets_file": ds.targets_file, "camera_file": ds.camera_file,
+                "depth_scale": ds.depth_scale, "prior_faults": ds.prior_faults.model_dump(), "seed": ds.seed}
     return {"preset": ds.preset, "seed": ds.seed}
 
 
@@ -409,7 +415,7 @@ _SPECS = (
                 "each modality's own)",
         threads=1, mem_mb=1500, runtime_min=240, label=_register_label, seed_version=5),
     StageSpec(
-        "refine", 9, ("scene", "all"),
+        "refine", 10, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
                "all": ("refine", "scene_features", "register", "segment_prior")},
         writes={"scene": (A.CANDIDATE_CHOICES, A.HYPOTHESES, A.POSES, A.SAR, A.REFINE_TIMES),
