@@ -83,18 +83,12 @@ instead of votes adds 0.05 AR; the scene sampled at 0.08 instead of 0.05 diamete
 cuts the matching time. (*) measured with three other jobs on the two cores: the same
 setting took 3.1 s/image over all of semilmo when the machine was quieter.
 
-Results with the defaults (all target images, default priors; ``benchmarks/results/peers/``):
+The table with the defaults, beside the project's default and geometry-only runs, one
+set after the other on an idle machine: ``--table`` writes ``benchmarks/results/peers.md``
+(the sweep above shared the machine with other jobs, so its times are up to 2x slower).
 
-| dataset | peer | AR | AR_VSD | AR_MSSD | AR_MSPD | s/image | onboarding, all objects (s) |
-|---|---|---|---|---|---|---|---|
-| semilmo (40 images, 285 targets) | fpfh | 0.766 | 0.776 | 0.760 | 0.763 | 8.8 | 3.6 |
-| semilmo | ppf | 0.732 | 0.695 | 0.733 | 0.769 | 3.1 | 13.5 |
-| synthhard (24 images, 135 instances) | fpfh | 0.421 | 0.473 | 0.347 | 0.444 | 6.4 | 1.6 |
-| synthhard | ppf | 0.422 | 0.483 | 0.344 | 0.439 | 4.2 | 110 |
-| tyol (1 image) | fpfh | 0.000 | 0.000 | 0.000 | 0.000 | 2.6 | 1.8 |
-| tyol | ppf | 0.110 | 0.330 | 0.000 | 0.000 | 2.6 | 3.6 |
-
-The s/image were measured while other jobs shared the machine (up to 2x slower).
+    .venv/bin/python benchmarks/peers.py --table realycbv,realycbv:faulty,semilmo,tyol,synthhard \\
+        --cache /tmp/peers_cache --label NAME
 
 The outside try quoted in issue 30 (voxel 0.025 d, 4M RANSAC iterations, point-to-plane
 ICP) reached AR 0.822 at 32 s per image on five real YCB-V images with ground-truth masks.
@@ -110,6 +104,7 @@ if "open3d" not in sys.modules:  # one thread, for reproducible RANSAC (see the 
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import shlex  # noqa: E402
 import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -758,7 +753,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         results = run_table([e for e in args.table.split(",") if e], methods, args.cache, args.out,
                             progress=not args.no_progress)
         label = args.label or "table"
-        command = "benchmarks/peers.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        command = "benchmarks/peers.py " + shlex.join(argv if argv is not None else sys.argv[1:])
         md = ROOT / "benchmarks" / "results" / "peers.md"
         write_section(md, label, table_section(label, command, results))
         print(f"wrote {md}")
