@@ -528,8 +528,9 @@ def _real_layout(source: Path, ds: cfg.DatasetManifest) -> tuple[list[int], dict
 
 
 def source_files(source: Path, ds: cfg.DatasetManifest) -> list[Path]:
-    """The files of a semi-real or real dataset's sample that its synth stage reads: the
-    dataset folder and the exact prior of a real one, the whole sample of a semi-real one."""
+    """The files a semi-real or real dataset's sample must have for its plan: the targets
+    file of its dataset folder and its exact prior (a real one), its targets file (a
+    semi-real one). A sample that is there without them is an error, not a skip."""
     if ds.kind == "real":
         return [source / ds.folder / ds.targets_file, source / ds.source_prior]
     return [source / "test_targets_bop19.json"]
