@@ -103,14 +103,10 @@ def _visible_masks(plan, bop) -> dict[tuple[int, int, int], np.ndarray]:
     return out
 
 
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    u = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / u) if u else 0.0
-
-
 def classify(plan) -> pd.DataFrame:
     """One row per target instance: scene_id, im_id, obj_id, gt_id, kind, mssd (in d, of
     the estimate; NaN without one), score, cand_id."""
+    from pipeline.evaluation.synth.priors import mask_iou
     from pipeline.formats.bop.detections import prior_row_mask
 
     bop = plan.bop()
@@ -149,7 +145,7 @@ def classify(plan) -> pd.DataFrame:
                 continue
             visible = _gt_visible(bop, shipped, t, gt_id)
             if visible is not None and cand_masks:
-                covers = {c: _iou(m, visible) for c, m in cand_masks.items()}
+                covers = {c: mask_iou(m, visible) for c, m in cand_masks.items()}
                 if max(covers.values()) < COVERS:
                     rows.append({**row, "kind": "prior: no mask on it"})
                     continue

@@ -439,19 +439,17 @@ def _check_images(rep: DatasetReport, bop, manifest, images: list[tuple[int, int
 def _check_depth_scale(rep: DatasetReport, bop, manifest, scenes: list[int]) -> None:
     """Every camera entry of the target scenes declares the manifest's ``depth_scale``,
     when it states one (one error per scene: the first image that departs)."""
+    from pipeline.formats.bop.dataset import depth_scale_problem
+
     if manifest.depth_scale is None:
         return
     for s in scenes:
         try:
-            cams = bop.scene_camera(s)
+            problem = depth_scale_problem(bop, s, manifest.depth_scale, f"manifests/datasets/{manifest.name}.yaml")
         except (ValueError, OSError):
-            continue  # reported by the image checks
-        for im_id, cam in sorted(cams.items()):
-            if not math.isclose(cam.depth_scale, manifest.depth_scale, rel_tol=1e-6):
-                rep.errors.append(f"{bop.scene_dir(s) / 'scene_camera.json'}: image {im_id}: field 'depth_scale' is "
-                                  f"{cam.depth_scale}, but manifests/datasets/{manifest.name}.yaml states "
-                                  f"{manifest.depth_scale}")
-                break
+            continue  # an unreadable scene_camera.json: reported by the image checks
+        if problem:
+            rep.errors.append(problem)
 
 
 def _check_priors(rep: DatasetReport, bop_root: Path, manifest, priors: list[str] | None, infos: dict,

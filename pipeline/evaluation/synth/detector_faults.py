@@ -31,6 +31,8 @@ import numpy as np
 
 from pipeline.formats.bop import Detection, detection_from_mask
 
+from .priors import mask_iou, morph_mask
+
 
 @dataclass(frozen=True)
 class DetectorFaults:
@@ -92,12 +94,6 @@ class FaultLog:
         return out
 
 
-def _morph(mask: np.ndarray, radius: int, dilate: bool) -> np.ndarray:
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-    m = mask.astype(np.uint8)
-    return (cv2.dilate(m, k) if dilate else cv2.erode(m, k)).astype(bool)
-
-
 def _cut(mask: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
     """``mask`` with the ``fraction`` of its pixels beyond a straight edge of random
     direction removed, as an occluder's edge would."""
@@ -108,11 +104,6 @@ def _cut(mask: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndar
     out = mask.copy()
     out[ys[d > edge], xs[d > edge]] = False
     return out
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 0.0
 
 
 def _score(quality: float, rng: np.random.Generator, faults: DetectorFaults) -> float:
@@ -165,7 +156,7 @@ def derive_faulty_prior(exact: list[Detection], obj_ids: list[int], rng: np.rand
             u = rng.random()
             if u < faults.erode + faults.dilate:
                 dilate = u >= faults.erode
-                eroded = _morph(mask, int(rng.integers(1, faults.max_morph_px + 1)), dilate)
+                eroded = morph_mask(mask, int(rng.integers(1, faults.max_morph_px + 1)), dilate)
                 if eroded.sum() >= faults.min_pixels:
                     mask = eroded
                     log.dilated += dilate
@@ -178,7 +169,7 @@ def derive_faulty_prior(exact: list[Detection], obj_ids: list[int], rng: np.rand
             if rng.random() < faults.wrong_label and others:
                 label = others[int(rng.integers(len(others)))]
                 log.wrong_label += 1
-            quality = _iou(mask, true) if label == det.category_id else 0.0
+            quality = mask_iou(mask, true) if label == det.category_id else 0.0
             made.append((label, _score(quality, rng, faults), mask))
         absent = [o for o in obj_ids if o not in present]
         for _ in range(int(rng.poisson(faults.stray_per_image))):

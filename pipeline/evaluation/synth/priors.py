@@ -47,14 +47,26 @@ def _smooth_field(shape: tuple[int, int], rng: np.random.Generator, cell: int = 
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
 
 
+def morph_mask(mask: np.ndarray, radius: int, dilate: bool) -> np.ndarray:
+    """A (H, W) mask eroded (or dilated) by a disc of ``radius`` px, as bool."""
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    m = np.asarray(mask).astype(np.uint8)
+    return (cv2.dilate(m, k) if dilate else cv2.erode(m, k)).astype(bool)
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two (H, W) bool masks (0 when both are empty)."""
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 0.0
+
+
 def perturb_mask(mask: np.ndarray, rng: np.random.Generator, max_px: int = 3) -> np.ndarray:
     """A segmenter-like version of a (H, W) bool mask: eroded or dilated, boundary jittered."""
     m = mask.astype(np.uint8)
     r = int(rng.integers(0, max_px + 1))
     op = rng.choice(3, p=[0.35, 0.35, 0.3])
     if r > 0 and op < 2:
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        m = cv2.erode(m, k) if op == 0 else cv2.dilate(m, k)
+        m = morph_mask(m, r, dilate=op == 1)
     soft = cv2.GaussianBlur(m.astype(np.float32), (0, 0), 1.5)
     # The jitter only moves the boundary: far from it the blurred mask is 0 or 1.
     near = soft > 0.02

@@ -30,6 +30,7 @@ import numpy as np
 
 from pipeline.common.store import atomic_dir
 from pipeline.formats.bop import BopDataset, load_detections, save_detections
+from pipeline.formats.bop.dataset import depth_scale_problem
 
 from .detector_faults import DetectorFaults, derive_faulty_prior
 
@@ -53,13 +54,11 @@ def detector_faults(ds) -> DetectorFaults:
 
 def _check_sample(bop, ds, targets, exact, prior_path: Path) -> None:
     """Raise ValueError naming the file and the field where the sample departs from its manifest."""
-    scene_ids = sorted({t.scene_id for t in targets})
     if ds.depth_scale is not None:
-        for s in scene_ids:
-            for im_id, cam in bop.scene_camera(s).items():
-                if not np.isclose(cam.depth_scale, ds.depth_scale, rtol=1e-6):
-                    raise ValueError(f"{bop.scene_dir(s) / 'scene_camera.json'}: image {im_id}: field 'depth_scale' is "
-                                     f"{cam.depth_scale}, but manifest '{ds.name}' states {ds.depth_scale}")
+        for s in sorted({t.scene_id for t in targets}):
+            problem = depth_scale_problem(bop, s, ds.depth_scale, f"manifests/datasets/{ds.name}.yaml")
+            if problem:
+                raise ValueError(problem)
     covered = {(d.scene_id, d.image_id, d.category_id) for d in exact}
     uncovered = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in covered]
     if uncovered:

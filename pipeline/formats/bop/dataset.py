@@ -16,6 +16,7 @@ raw integers times ``depth_scale`` = mm. JSON files are parsed once per instance
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -262,6 +263,20 @@ def _focal_range(size_px: int) -> tuple[float, float]:
     px: the fields of view :data:`MAX_FOV_DEG` and :data:`MIN_FOV_DEG` across it."""
     half = 0.5 * float(size_px)
     return (half / np.tan(np.radians(MAX_FOV_DEG / 2)), half / np.tan(np.radians(MIN_FOV_DEG / 2)))
+
+
+def depth_scale_problem(bop: BopDataset, scene_id: int, expected: float, stated_by: str) -> str | None:
+    """None if every image of scene ``scene_id`` declares ``depth_scale`` ``expected``
+    (mm per unit, relative tolerance 1e-6) in its scene_camera.json, else a one-line
+    reason naming the file, the first image that departs and the field; ``stated_by``
+    says who states the value (a manifest's path). The one rule shared by the real-sample
+    builder and ``freeze datasets check``; a scene_camera.json that cannot be read raises
+    as the reader does."""
+    for im_id, cam in sorted(bop.scene_camera(scene_id).items()):
+        if not math.isclose(cam.depth_scale, expected, rel_tol=1e-6):
+            return (f"{bop.scene_dir(scene_id) / 'scene_camera.json'}: image {im_id}: field 'depth_scale' is "
+                    f"{cam.depth_scale}, but {stated_by} states {expected}")
+    return None
 
 
 def intrinsics_problem(K: np.ndarray, width: int, height: int) -> str | None:
