@@ -697,17 +697,8 @@ def run_table(entries: list[str], methods: list[str], cache: Path | None, out_di
             if method in PROJECT_METHODS:
                 rows.append(project_row(name, prior, method, cache))
             else:
-                old = os.environ.get("FREEZE_CACHE")
-                if cache:
-                    os.environ["FREEZE_CACHE"] = str(cache)
-                try:
-                    plan = dataset_plan(name, prior)
-                    summary = run_and_score(plan, method, None, None, out_dir, progress=progress)
-                finally:
-                    if cache and old is None:
-                        del os.environ["FREEZE_CACHE"]
-                    elif cache:
-                        os.environ["FREEZE_CACHE"] = old
+                summary = run_and_score(dataset_plan(name, prior, cache), method, None, None, out_dir,
+                                        progress=progress)
                 rows.append({**summary, "method": method})
             print(json.dumps({k: v for k, v in rows[-1].items() if k != "params"}, default=float), flush=True)
         results.append((name, prior, rows))
