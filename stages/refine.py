@@ -52,7 +52,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.formats.bop.detections import prior_row_mask
     from pipeline.method.estimator import Estimator
     from pipeline.method.scene_side import SceneImages, packed_points, time_table
-    from pipeline.workflow.plan import build_encoders, encoder_runtime
+    from pipeline.workflow.plan import build_encoders, encoder_runtime, warm_imports
     from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("refine", item)
@@ -77,6 +77,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                          mesh=bop.load_model, candidate=candidate)
     estimator = Estimator(prepared_objects(io, bop, features=("points", "normals"), symmetries=True),
                           plan.run.stages, lambda: build_encoders(plan.run), image_mode=plan.dataset.image_mode)
+    warm_imports("pyrender", "pipeline.method.render.renderer", "pipeline.method.refinement.sar",
+                 "pipeline.method.refinement.verification", "pipeline.method.refinement.icp")
     with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
             job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
         refined = estimator.refine(registered, packed_points(scene), images, targets, bar.advance, mapper)

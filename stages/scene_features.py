@@ -18,7 +18,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from pipeline.workflow.plan import DatasetPlan, build_encoders, encoder_runtime
+from pipeline.workflow.plan import DatasetPlan, build_encoders, encoder_runtime, warm_imports
 
 
 def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
@@ -35,6 +35,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     cands = io.table("segment_prior", "prior_candidates")
     cands = cands[(cands.scene_id == scene_id) & cands.im_id.isin(io.images())].sort_values("cand_id")
     estimator = Estimator(prepared_objects(io, bop), plan.run.stages, build_encoders(plan.run))
+    warm_imports("pipeline.method.encoders.lifting", "pipeline.method.geometry.depth")
     geo_enc, vis_enc = estimator.encoders
     found = {}
     image_rows = []

@@ -72,6 +72,40 @@ def test_icp_and_the_fine_icp_converge_from_larger_perturbations(partial_views, 
         assert rotation_angle_deg(fine.R, view.R) < 0.3 and np.linalg.norm(fine.t - view.t) < 0.5, i
 
 
+def test_the_fine_icp_keeps_the_object_points_and_drops_a_background_blob(partial_views):
+    """The fine ICP's points are the masked depth near the candidate's scene_features
+    points: a mask that bleeds onto a wall 0.4 diameters behind the object gives the
+    object's points back and none of the wall's, and the fine ICP from the ICP's
+    pose stays on the true pose."""
+    from pipeline.method.geometry.depth import lift_depth, remove_outliers
+    from pipeline.method.scene_side import fine_icp_points, sample_candidate
+
+    pts, nrm, diameter, views = partial_views
+    view = views[0]
+    depth = view.depth.copy()
+    ys, xs = np.nonzero(view.mask)
+    grown = np.zeros_like(view.mask)
+    grown[ys.min():ys.max() + 1, xs.max() + 1:xs.max() + 13] = True  # a strip on its right
+    wall = grown.copy()
+    grown |= view.mask
+    depth[wall] = float(view.depth[view.mask].max()) + 0.4 * diameter
+    every, _ = lift_depth(view.depth, SCENE_K, view.mask)
+    lifted, _ = lift_depth(depth, SCENE_K, grown)
+    assert len(lifted) > len(every) + 300  # the wall is there
+    kept = lifted[remove_outliers(lifted, diameter)]
+    near = kept[sample_candidate(len(kept), 1000, 0)]
+    got = fine_icp_points(depth, SCENE_K, grown, near, diameter)
+    key = {tuple(p) for p in every.round(3).tolist()}
+    # none of the wall; the object's points but a few at its silhouette, more than the
+    # filters keep (measured: 9038 of 9124; the filters keep 8913)
+    assert all(tuple(p) in key for p in got.round(3).tolist())
+    assert len(got) >= max(0.98 * len(every), len(kept))
+    assert len(fine_icp_points(depth, SCENE_K, grown, None, diameter)) == len(lifted)
+    dense, dense_nrm = sample_surface(make_object("rock", seed=1), 20000, seed=1)
+    fine = refine_icp(dense, dense_nrm, got[sample_candidate(len(got), 2000, 0)], view.R, view.t, diameter)
+    assert rotation_angle_deg(fine.R, view.R) < 0.3 and np.linalg.norm(fine.t - view.t) < 0.5
+
+
 def test_icp_needs_normals_for_point_to_plane(partial_views):
     pts, _, diameter, views = partial_views
     with pytest.raises(ValueError, match="model_normals"):

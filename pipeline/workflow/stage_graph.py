@@ -415,7 +415,7 @@ _SPECS = (
                 "each modality's own)",
         threads=1, mem_mb=1500, runtime_min=240, label=_register_label, seed_version=5),
     StageSpec(
-        "refine", 10, ("scene", "all"),
+        "refine", 11, ("scene", "all"),
         reads={"scene": ("register", "symmetries", "scene_features", "model_features", "segment_prior", "dataset"),
                "all": ("refine", "scene_features", "register", "segment_prior")},
         writes={"scene": (A.CANDIDATE_CHOICES, A.HYPOTHESES, A.POSES, A.SAR, A.REFINE_TIMES),
