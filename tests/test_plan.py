@@ -103,7 +103,8 @@ def test_short_encoder_keys_none_and_weights_dir(tmp_path):
 # random draws come from the seed keys (StagePlan.seed_key), which are the keys before
 # issue 29 (MAIN_JOB_SEED_KEYS), so every value in every artifact stayed the same.
 # Issue 30 (SAR skips untextured models) bumped refine (9 -> 10): refine's and score's keys
-# changed, their seed keys did not.
+# changed, their seed keys did not. So did the fine ICP's depth points chosen near
+# scene_features' points (10 -> 11).
 MAIN_JOB_KEYS = {
     "synth": "42e22634980724b4b02cc270abefe72cd6af6e03",
     "render_templates": "4c687dcea59bf855850770f05da8aafca91cd386",
@@ -112,8 +113,8 @@ MAIN_JOB_KEYS = {
     "segment_prior": "4a14217dd176647e1b98d9ec86ec8a85f58ea295",
     "scene_features": "af3ff781b440ad7c2e852f5269dc4d6ae7364a2a",
     "register": "607d9ce2a11874799482e4c56618510af66f9291",
-    "refine": "d46c854b2098bcfbec511c5cfd0e45e9b3e25901",
-    "score": "8ed16e9cc0ec53569384c591d5825e45c07cc223",
+    "refine": "76b3360854a4a87a9760fd25e1be045cbd4d5021",
+    "score": "5a8577dae8caad156a02b59a08f4e0dd03a13861",
 }
 MAIN_JOB_SEED_KEYS = {
     **MAIN_JOB_KEYS,
@@ -129,7 +130,7 @@ MAIN_JOB_SEED_KEYS = {
 def test_main_job_keys_are_pinned():
     plan = RunPlan(cfg.load_run({}))["synthmini"]
     assert {s: sp.key for s, sp in plan.stages.items()} == MAIN_JOB_KEYS
-    assert plan["refine"].signature == "icp+sar-byverification-d46c854b"
+    assert plan["refine"].signature == "icp+sar-byverification-76b33608"
 
 
 def test_main_job_seed_keys_are_the_keys_before_the_renames():

@@ -70,13 +70,6 @@ QUICK_ICP_ITERATIONS = 10
 """Iterations of the quick ICP that ranks the turns of a hypothesis (at the coarsest
 correspondence distance only)."""
 
-QUICK_ICP_POINTS = 250
-"""Candidate points of the quick ICP: every k-th of its M sampled points (already a
-random sample), at least this many. It only ranks the ~25 turns of a hypothesis, and the
-turns it keeps are refined on all M points; each ICP iteration's cost is its k-d tree
-query, linear in the points (0.29 us a point on this CPU). On semi-real LM-O the quick
-ICPs on all 1000 points took a third of refine's time."""
-
 FINE_NEAR_FRAC = 0.05
 """The fine ICP's depth points are the candidate's valid masked depth within this
 fraction of the diameter of its scene_features points, which passed the outlier filters
@@ -766,10 +759,7 @@ class _RefineWork:
             return R, t, fitness, float("nan")
         schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
             {"iterations": params.iterations}
-        points = self.points[ident["cand_id"]]
-        if quick:
-            points = points[::max(1, len(points) // QUICK_ICP_POINTS)]
-        res = refine_icp(self.models[ident["obj_id"]], None, points, R, t,
+        res = refine_icp(self.models[ident["obj_id"]], None, self.points[ident["cand_id"]], R, t,
                          self.diameters[ident["obj_id"]], max_corr_dist_frac=params.max_corr_frac,
                          point_to_plane=params.point_to_plane, **schedule)
         return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
