@@ -2,7 +2,7 @@
 # Install everything on a fresh Debian machine with Python 3.11 (idempotent):
 # the Debian packages headless pyrender needs (EGL/Mesa) and headless Chromium (the
 # report's rendering test), a virtual environment in .venv, and the project with its
-# pinned torch==2.13.0 (CPU wheel).
+# pinned torch==2.13.0 (CPU wheel), installed by uv (pip where uv fails).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,7 +24,29 @@ PY="${PYTHON:-python3}"
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
-# torch first and pinned: an unpinned torch would pull a multi-GB CUDA build.
-.venv/bin/python -m pip install -q --disable-pip-version-check torch==2.13.0
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
+# The packages go in through uv (installed into the venv by pip, pinned): it resolves,
+# fetches and unpacks in parallel, 11 s against pip's 85 s for the same 163 packages on
+# this 2-core machine (CHANGELOG, issue 31). uv reads no pip configuration, so the
+# machine's pip settings (wheel folders, mirrors, constraints) are handed to it; where
+# uv cannot be had or fails, pip installs the same set. torch is pinned in
+# pyproject.toml: an unpinned torch would pull a multi-GB CUDA build.
+PIP=(.venv/bin/python -m pip install -q --disable-pip-version-check)
+uv_args=(--python .venv/bin/python --index-strategy unsafe-best-match)
+while IFS= read -r line; do
+  key="${line%%=*}"; value="${line#*=}"; value="${value#\'}"; value="${value%\'}"
+  case "${key#*.}" in  # pip's multi-valued settings are space-separated
+    find-links) for v in $value; do uv_args+=(--find-links "$v"); done ;;
+    extra-index-url) for v in $value; do uv_args+=(--extra-index-url "$v"); done ;;
+    index-url) uv_args+=(--index-url "$value") ;;
+    constraint) for v in $value; do uv_args+=(--constraint "$v"); done ;;
+    cert) export SSL_CERT_FILE="${SSL_CERT_FILE:-$value}" ;;
+  esac
+done < <(.venv/bin/python -m pip config list 2>/dev/null)
+if "${PIP[@]}" uv==0.13.9 && .venv/bin/uv pip install -q "${uv_args[@]}" torch==2.13.0 -e '.[test]'; then
+  :
+else
+  echo "uv could not install the packages; installing them with pip instead"
+  "${PIP[@]}" torch==2.13.0
+  "${PIP[@]}" -e '.[test]'
+fi
 .venv/bin/python -c 'import torch, open3d, pyrender, zarr, snakemake; print("environment ready: torch", torch.__version__)'

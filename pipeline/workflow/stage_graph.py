@@ -393,7 +393,11 @@ _SPECS = (
         writes={"obj": (A.MODEL_FEATURES,)}, keyed_by=("render_templates",),
         algorithm="pipeline.method.model_side.model_features", side="model",
         summary="geometric and lifted visual features of one object's sampled points",
-        threads=2, mem_mb=4000, runtime_min=120, label=_encoders_label, params=_model_features_params),
+        # One thread: a second speeds one job by only 1.4x (7.6 -> 5.5 s an object with
+        # fpfh + colortex), so two jobs side by side finish the objects sooner (the main
+        # job 172 -> 129 s on 2 cores, issue 31). The scene side keeps two: its time per
+        # image is what the results report.
+        threads=1, mem_mb=4000, runtime_min=120, label=_encoders_label, params=_model_features_params),
     StageSpec(
         "segment_prior", 4, ("all",), reads={"all": ("dataset", "prior")}, writes={"all": (A.PRIOR_CANDIDATES,)},
         keyed_by=("dataset", "prior"), algorithm="pipeline.method.segmentation.candidates_from_priors",

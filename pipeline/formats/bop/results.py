@@ -10,15 +10,17 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
 import numpy as np
-import pandas as pd
 
 from .errors import BopFormatError
 from pipeline.common.store import atomic_write_text
 
 from .jsonio import brief, load_json, read_text
+
+if TYPE_CHECKING:  # pandas (0.2 s) is imported where a DataFrame is made: most jobs never do
+    import pandas as pd
 
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 COLUMNS = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
@@ -62,6 +64,8 @@ def _parse_finite(raw: str) -> float:
 
 
 def _rows(rows: pd.DataFrame | Iterable[Mapping[str, Any]]) -> Iterable[Mapping[str, Any]]:
+    import pandas as pd
+
     if isinstance(rows, pd.DataFrame):
         return (r for _, r in rows.iterrows())
     return rows
@@ -152,6 +156,8 @@ def read_results_csv(path: Path | str) -> pd.DataFrame:
         records["R"].append(field("R", None, 9).reshape(3, 3))
         records["t"].append(field("t", None, 3))
         records["time"].append(field("time", _parse_finite) if has_time else -1.0)
+    import pandas as pd
+
     df = pd.DataFrame(
         {
             "scene_id": pd.Series(records["scene_id"], dtype="int64"),
@@ -212,6 +218,8 @@ def read_estimates_json(path: Path | str) -> pd.DataFrame:
                 raise bad(k, f"expected {n} finite numbers, got {brief(v)}")
             row[out] = np.array(values, dtype=np.float64).reshape((3, 3) if n == 9 else (3,))
         rows.append(row)
+    import pandas as pd
+
     df = pd.DataFrame(rows, columns=COLUMNS)
     return df.astype({"scene_id": "int64", "im_id": "int64", "obj_id": "int64", "score": "float64", "time": "float64"})
 
@@ -221,6 +229,8 @@ def image_times(stage_times: Iterable[pd.DataFrame], prior_time: pd.Series | Non
     times of the scene-side stages (tables with scene_id, im_id, time_s), plus the
     localisation prior's own time for the image (``prior_time``, negative = unknown = 0).
     Model onboarding is excluded, as BOP defines it."""
+    import pandas as pd
+
     frames = [t[["scene_id", "im_id", "time_s"]] for t in stage_times]
     per_image = pd.concat(frames, ignore_index=True).groupby(["scene_id", "im_id"]).time_s.sum()
     if prior_time is not None:

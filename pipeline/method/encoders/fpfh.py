@@ -14,10 +14,8 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
-import open3d as o3d
 
 from pipeline.method.encoders.registry import GeometricEncoder, register_encoder, with_checked_points
-from pipeline.method.geometry.normals import estimate_normals
 
 FPFH_BINS = 33
 
@@ -80,6 +78,12 @@ class FpfhEncoder(GeometricEncoder):
     ) -> np.ndarray:
         """Descriptors (N, dim) float32 of ``points`` (N, 3) float64 mm (N >= 1; see
         :func:`~pipeline.method.encoders.registry.with_checked_points`)."""
+        # open3d (0.65 s to import, dash's plotly viewer with it) only here: every job
+        # plans the run, which registers this encoder, and most jobs never encode.
+        import open3d as o3d
+
+        from pipeline.method.geometry.normals import estimate_normals
+
         if normals is None:
             normals = estimate_normals(
                 points, self.normal_radius * diameter, max_nn=self.normal_max_nn, viewpoint=viewpoint
