@@ -17,7 +17,11 @@
 #    PointNet++ kernels (min cosine >= 0.999);
 # 2. benchmarks/paper_run.py --dataset synthtiny --device cuda: the paper's configuration
 #    (gedi + dinov2-vitg14, random full-size weights in the official layouts) through
-#    every stage, timed per stage, s/image against the paper's 2.72 s, peak GPU memory.
+#    every stage, timed per stage, s/image against the paper's 2.72 s, peak GPU memory;
+# 3. benchmarks/icp_paths.py --device cuda --stages on that run's cache: refine's
+#    hypothesis ICP on both paths (numpy one at a time on the CPU, torch batched on the
+#    GPU), their times and how far their poses are apart, then refine and score again
+#    with the numpy path for the comparison of choices and AR.
 #
 # Writes the report to $OUT/gpu_check.md (the device tool's output folder; else
 # ./gpu_check_out/) and prints it. Without CUDA it prints one line and exits 0. Scratch
@@ -29,7 +33,7 @@ ROOT="$PWD"
 KEEP=0
 case "${1:-}" in
   --keep) KEEP=1 ;;
-  -h|--help) sed -n '2,27p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+  -h|--help) sed -n '2,31p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
   "") ;;
   *) echo "gpu_check: FAILED: unknown option $1 (see --help)" >&2; exit 2 ;;
 esac
@@ -79,28 +83,37 @@ GPU="$("$PY" -c 'import torch; print(torch.cuda.get_device_name(0), "| torch", t
 step "GPU: $GPU; environment: $ENV_NOTE"
 
 # --- 1. oracles -------------------------------------------------------------------------
-step "1/2 the encoders on cuda against the official computations"
+step "1/3 the encoders on cuda against the official computations"
 T1=$(date +%s)
 "$PY" benchmarks/gpu_oracles.py --device cuda --official "$OFFICIAL" --out "$TMP/oracles.md" \
   > "$TMP/oracles.log" 2>&1 || { tail -n 40 "$TMP/oracles.log" >&2; cp "$TMP/oracles.log" "$REPORT_DIR/" || true; fail "oracle comparisons (log: $REPORT_DIR/oracles.log)"; }
 T2=$(date +%s)
 
 # --- 2. the paper's configuration on synthtiny ----------------------------------------------
-step "2/2 the paper's configuration (gedi + dinov2-vitg14) on synthtiny, device=cuda"
+step "2/3 the paper's configuration (gedi + dinov2-vitg14) on synthtiny, device=cuda"
 "$PY" benchmarks/paper_run.py --dataset synthtiny --geometric gedi --visual dinov2-vitg14 --device cuda \
   --weights "$TMP/weights" --cache "$TMP/cache" --out "$TMP/paper_run.md" --json "$REPORT_DIR/paper_run.json" \
   > "$TMP/paper_run.log" 2>&1 || { tail -n 40 "$TMP/paper_run.log" >&2; cp "$TMP/paper_run.log" "$REPORT_DIR/" || true; fail "paper run (log: $REPORT_DIR/paper_run.log)"; }
 T3=$(date +%s)
 
+# --- 3. refine's ICP on both paths --------------------------------------------------------
+step "3/3 refine's hypothesis ICP: numpy on the CPU against torch on cuda, on the paper run's hypotheses"
+"$PY" benchmarks/icp_paths.py --dataset synthtiny --geometric gedi --visual dinov2-vitg14 --device cuda \
+  --weights "$TMP/weights" --cache "$TMP/cache" --stages --out "$TMP/icp_paths.md" \
+  > "$TMP/icp_paths.log" 2>&1 || { tail -n 40 "$TMP/icp_paths.log" >&2; cp "$TMP/icp_paths.log" "$REPORT_DIR/" || true; fail "ICP paths (log: $REPORT_DIR/icp_paths.log)"; }
+T4=$(date +%s)
+
 {
   echo "# scripts/gpu_check.sh, $(date -u +%Y-%m-%dT%H:%MZ)"
   echo
-  echo "GPU: $GPU. Environment: $ENV_NOTE. Steps: oracles $((T2 - T1)) s, paper run $((T3 - T2)) s, total $((T3 - T_START)) s."
+  echo "GPU: $GPU. Environment: $ENV_NOTE. Steps: oracles $((T2 - T1)) s, paper run $((T3 - T2)) s, ICP paths $((T4 - T3)) s, total $((T4 - T_START)) s."
   echo
   cat "$TMP/oracles.md"
   echo
   cat "$TMP/paper_run.md"
+  echo
+  cat "$TMP/icp_paths.md"
 } > "$REPORT_DIR/gpu_check.md"
 cp "$TMP/paper_run.log" "$REPORT_DIR/paper_run.log"
 cat "$REPORT_DIR/gpu_check.md"
-echo "gpu_check: OK ($((T3 - T_START)) s; report $REPORT_DIR/gpu_check.md)"
+echo "gpu_check: OK ($((T4 - T_START)) s; report $REPORT_DIR/gpu_check.md)"

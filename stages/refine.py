@@ -52,7 +52,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.formats.bop.detections import prior_row_mask
     from pipeline.method.estimator import Estimator
     from pipeline.method.scene_side import SceneImages, packed_points, time_table
-    from pipeline.workflow.plan import build_encoders, encoder_runtime, warm_imports
+    from pipeline.workflow.plan import build_encoders, encoder_runtime, icp_device, warm_imports
     from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("refine", item)
@@ -76,7 +76,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                          depth=lambda im_id: bop.load_depth(scene_id, im_id), K=lambda im_id: cams[im_id].K,
                          mesh=bop.load_model, candidate=candidate)
     estimator = Estimator(prepared_objects(io, bop, features=("points", "normals"), symmetries=True),
-                          plan.run.stages, lambda: build_encoders(plan.run), image_mode=plan.dataset.image_mode)
+                          plan.run.stages, lambda: build_encoders(plan.run), image_mode=plan.dataset.image_mode,
+                          icp_device=icp_device(plan.run))
     warm_imports("pyrender", "pipeline.method.render.renderer", "pipeline.method.refinement.sar",
                  "pipeline.method.refinement.verification", "pipeline.method.refinement.icp")
     with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
@@ -88,8 +89,10 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         refined = estimator.refine_by_symmetry(refined, images, lambda n: bar.set_total(n) or bar.advance, untextured)
     table, poses = refined.candidates, refined.poses
     with io.publish() as w:
-        if refined.sar_encoder is not None:  # SAR's encoder passes: where and in what precision (recorded, not keyed)
-            w.manifest["runtime"] = {"visual": encoder_runtime(refined.sar_encoder)}
+        # Where the ICP ran, and SAR's encoder passes in what precision (recorded, not keyed).
+        w.manifest["runtime"] = {"icp": "numpy" if estimator.icp_device is None else f"torch-{estimator.icp_device}"}
+        if refined.sar_encoder is not None:
+            w.manifest["runtime"]["visual"] = encoder_runtime(refined.sar_encoder)
         w.write("candidate_choices", table)
         w.write("hypotheses", refined.hypotheses)
         w.write("poses", poses)

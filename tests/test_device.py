@@ -207,7 +207,7 @@ def test_keys_are_the_same_on_every_device_at_the_same_precision(weights, tiny_v
 @pytest.mark.slow
 def test_stage_manifests_record_device_and_precision(weights, tiny_vits14, tmp_path):
     """model_features and scene_features record where their encoders ran, refine where
-    SAR's visual encoder ran (synthtiny with small stage parameters, GeDi at one radius)."""
+    SAR's visual encoder and the ICP ran (synthtiny with small stage parameters, GeDi at one radius)."""
     from stages import run_stage
 
     data = _run(weights, geometric="gedi-r03", device="cpu").model_dump()
@@ -231,7 +231,7 @@ def test_stage_manifests_record_device_and_precision(weights, tiny_vits14, tmp_p
         assert "device" not in json.dumps(manifest["params"])  # recorded, not keyed
         assert manifest["params"]["encoders"]["visual"]["params"]["precision"] == precision  # keyed
     refine = json.loads((plan["refine"].item_dir("scene_000001") / "_manifest.json").read_text())
-    assert refine["summary"]["n_sar"] > 0 and refine["runtime"] == {"visual": want["visual"]}
+    assert refine["summary"]["n_sar"] > 0 and refine["runtime"] == {"visual": want["visual"], "icp": "numpy"}
 
 
 # --- the encoders compute on the device ------------------------------------------------------

@@ -266,15 +266,33 @@ def test_near_symmetries_of_an_almost_square_box_start_with_its_quarter_turn():
     assert 0.005 * 241.0 < score < 0.05 * 241.0
 
 
+def _frame_refine_inputs(f: dict, points: np.ndarray, normals: np.ndarray) -> tuple:
+    """What refine_candidates needs for the rendered frame ``f`` and its model samples:
+    the scene's loaders, 1000 of its depth points (mm), the model's turns, the model."""
+    from pipeline.method.geometry.symmetry import SymmetrySet
+    from pipeline.method.refinement.turns import model_turns
+    from pipeline.method.scene_side import SceneImages
+
+    ys, xs = np.nonzero(f["mask"])
+    bbox = (xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+    images = SceneImages(rgb=lambda i: None, depth=lambda i: f["depth"], K=lambda i: f["K"],
+                         mesh=lambda o: f["mesh"], candidate=lambda c: (bbox, f["mask"]))
+    ys, xs = np.nonzero(f["depth"] > 0)
+    z = f["depth"][ys, xs]
+    scene = np.stack([(xs - f["K"][0, 2]) * z / f["K"][0, 0], (ys - f["K"][1, 2]) * z / f["K"][1, 1], z], 1)
+    scene = scene[np.random.default_rng(0).choice(len(scene), 1000, replace=False)]
+    return images, scene, {1: model_turns([], points, SymmetrySet(), f["diameter"])}, \
+        {"points": points, "normals": normals}
+
+
 def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wrong(rendered_frame):
     """The only coarse hypothesis is the true pose turned half about the model's z axis
     (the toy truck's near-symmetry: chassis and wheels match, cab and cargo do not);
     refinement tries the turns of it, and the verification picks the true pose back,
     recording the turn and its parent. With ``turns`` 0 the wrong pose stays."""
     from pipeline.method.geometry.sampling import sample_surface
-    from pipeline.method.geometry.symmetry import SymmetrySet
-    from pipeline.method.refinement.turns import model_turns, turned
-    from pipeline.method.scene_side import PoseVerifier, SceneImages
+    from pipeline.method.refinement.turns import turned
+    from pipeline.method.scene_side import PoseVerifier
 
     f = rendered_frame
     mesh = f["mesh"]
@@ -287,16 +305,7 @@ def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wr
     registered = pd.DataFrame([{"cand_id": 0, "scene_id": 1, "im_id": 0, "obj_id": 1, "prior_score": 0.9, "hyp": 0,
                                 "source": "fused", "n_inliers": 50, "inlier_ratio": 0.05, "R": R0.ravel().tolist(),
                                 "t": t0.tolist(), "ransac_fitness": 0.5}])
-    ys, xs = np.nonzero(f["mask"])
-    bbox = (xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
-    images = SceneImages(rgb=lambda i: None, depth=lambda i: f["depth"], K=lambda i: f["K"], mesh=lambda o: mesh,
-                         candidate=lambda c: (bbox, f["mask"]))
-    ys, xs = np.nonzero(f["depth"] > 0)
-    z = f["depth"][ys, xs]
-    scene = np.stack([(xs - f["K"][0, 2]) * z / f["K"][0, 0], (ys - f["K"][1, 2]) * z / f["K"][1, 1], z], 1)
-    scene = scene[np.random.default_rng(0).choice(len(scene), 1000, replace=False)]
-    turns = {1: model_turns([], points, SymmetrySet(), f["diameter"])}
-    model = {"points": points, "normals": normals}
+    images, scene, turns, model = _frame_refine_inputs(f, points, normals)
     for n_turns, right in ((3, True), (0, False)):
         params = RefineParams(turns=n_turns)
         with PoseVerifier(images, params) as verify:
@@ -310,6 +319,43 @@ def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wr
             assert chosen.source == "turn" and chosen.parent == 0 and chosen.hyp >= 1
             assert chosen.n_inliers == 0 and chosen.evidence == 0.0
             assert (hyps.source == "turn").sum() == 3 and (hyps[hyps.source == "turn"].parent == 0).all()
+
+
+def test_the_batched_torch_icp_makes_the_numpy_icps_choices(rendered_frame):
+    """refine_candidates with ``icp_device`` (the GPU path, here on the CPU): a
+    candidate's hypotheses and its turns aligned together by the torch ICP give the
+    numpy ICP's hypotheses (the same rows, poses to 1e-6) and the same choice."""
+    from pipeline.method.geometry.sampling import sample_surface
+    from pipeline.method.geometry.transforms import perturb_pose
+    from pipeline.method.scene_side import PoseVerifier
+
+    f = rendered_frame
+    mesh = f["mesh"]
+    points, normals = sample_surface(mesh, 3000, seed=0)
+    rows = []
+    for hyp, (angle, shift) in enumerate([(4.0, 8.0), (12.0, 20.0), (30.0, 30.0), (90.0, 10.0)]):
+        R0, t0 = perturb_pose(f["R"], f["t"], angle, shift, rng=hyp)
+        rows.append({"cand_id": 0, "scene_id": 1, "im_id": 0, "obj_id": 1, "prior_score": 0.9, "hyp": hyp,
+                     "source": "fused", "n_inliers": 50 - hyp, "inlier_ratio": 0.05, "R": R0.ravel().tolist(),
+                     "t": t0.tolist(), "ransac_fitness": 0.5})
+    registered = pd.DataFrame(rows)
+    images, scene, turns, model = _frame_refine_inputs(f, points, normals)
+    params = RefineParams(turns=3)
+    out = {}
+    for device in (None, "cpu"):
+        with PoseVerifier(images, params) as verify:
+            out[device] = refine_candidates(registered, lambda c: scene, lambda o: model, {1: f["diameter"]},
+                                            params, verify, None, turns=turns, icp_device=device)
+    (h_np, c_np, _), (h_t, c_t, _) = out[None], out["cpu"]
+    assert len(h_np) > len(registered)  # the turns ran
+    for col in ("hyp", "source", "parent", "chosen", "n_inliers"):
+        assert h_t[col].tolist() == h_np[col].tolist(), col
+    for a, b in zip(h_t.itertuples(), h_np.itertuples()):
+        assert rotation_angle_deg(np.reshape(a.R, (3, 3)), np.reshape(b.R, (3, 3))) < 1e-6, a.hyp
+        assert np.abs(np.subtract(a.t, b.t)).max() < 1e-5, a.hyp
+        assert a.fitness == pytest.approx(b.fitness, abs=1e-9)
+    assert c_t.hyp.tolist() == c_np.hyp.tolist()
+    assert rotation_angle_deg(np.reshape(c_np.iloc[0].R, (3, 3)), f["R"]) < 3.0
 
 
 def test_a_skipped_candidates_register_row_keeps_the_declared_dtypes():

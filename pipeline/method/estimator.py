@@ -183,11 +183,15 @@ class Estimator:
     (scene_features, register and refine are read); encoders: the run's (geometric,
     visual) encoders, or a zero-argument loader of them (called when a step first needs
     them; None: registration alone, which matches features already computed); image_mode: ``rgb`` or ``gray`` (grey datasets get grey SAR renders).
+    icp_device: where refine's ICP runs: None for numpy (the faster on a CPU), or a torch
+    device such as ``cuda`` (see :func:`pipeline.method.scene_side.refine_candidates`).
     """
 
     def __init__(self, objects: Mapping[int, PreparedObject], stages: StageParams,
-                 encoders: tuple[Any, Any] | Callable[[], tuple[Any, Any]] | None = None, *, image_mode: str = "rgb"):
+                 encoders: tuple[Any, Any] | Callable[[], tuple[Any, Any]] | None = None, *, image_mode: str = "rgb",
+                 icp_device: str | None = None):
         self.objects, self.stages, self.image_mode = objects, stages, image_mode
+        self.icp_device = icp_device
         self._encoders = encoders
         self._matchable: dict[int, MatchableModel] = {}
 
@@ -254,7 +258,8 @@ class Estimator:
             tools = mapper.per_thread(partial(_ThreadTools, images, p, fine_objects))
             hypotheses, refined, image_time = refine_candidates(
                 registered, scene_points, models.__getitem__, diameters, p, ThreadMethod(tools, "verify"),
-                ThreadMethod(tools, "fine") if fine_objects is not None else None, progress, turns, mapper)
+                ThreadMethod(tools, "fine") if fine_objects is not None else None, progress, turns, mapper,
+                self.icp_device)
         finally:
             if own:
                 mapper.close()

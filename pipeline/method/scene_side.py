@@ -641,7 +641,7 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
                       params: RefineParams, verify: Callable[..., Any] | None = None,
                       fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None,
                       progress: Progress = _noop, turns: Mapping[int, np.ndarray] | None = None,
-                      mapper: Mapper | None = None,
+                      mapper: Mapper | None = None, icp_device: str | None = None,
                       ) -> tuple[pd.DataFrame, pd.DataFrame, dict[int, float]]:
     """ICP and verification of every coarse hypothesis (register's rows with status
     ``ok``), and each candidate's best hypothesis.
@@ -672,6 +672,11 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     belongs to its thread). The candidates are independent and their rows come back in
     their order, so the tables do not depend on the mapper.
 
+    icp_device: None for the numpy ICP, one hypothesis at a time (the faster on a CPU),
+    or a torch device (``cuda``) where a candidate's hypotheses, and its turns, are
+    aligned together (:func:`pipeline.method.refinement.icp_torch.refine_icp_batch`, in
+    float64: the numpy ICP's poses where a start converges, the same choices and AR).
+
     Returns the hypotheses (:data:`HYPOTHESIS_COLUMNS`, ``chosen`` marking each
     candidate's), the candidates (:data:`CANDIDATE_COLUMNS`: the chosen hypothesis'
     pose, ICP fitness and inlier_rmse (mm), evidence, verification terms) and the time
@@ -694,7 +699,7 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
                        {o: IcpModel(m["points"], m["normals"] if params.point_to_plane else None)
                         for o, m in models.items()} if params.icp else {},
                        {o: diameters[o] for o in objects}, params, key,
-                       verify, fine, {o: turns[o] for o in objects if turns and o in turns})
+                       verify, fine, {o: turns[o] for o in objects if turns and o in turns}, icp_device)
     image_time: dict[int, float] = {}
     rows: list[dict[str, Any]] = []
     done = mapper.map(_refine_one, [g.to_dict("records") for g in groups], work, progress)
@@ -747,6 +752,25 @@ class _RefineWork:
     verify: Callable[..., Any] | None
     fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None
     turns: Mapping[int, np.ndarray]
+    icp_device: str | None = None
+
+    def icp_many(self, ident: dict[str, Any], starts: Sequence[tuple[np.ndarray, np.ndarray, float]],
+                 quick: bool = False) -> list[tuple]:
+        """:meth:`icp` of several starts (R, t, fitness) of one candidate and object:
+        one at a time in numpy, or together on ``icp_device``."""
+        if self.icp_device is None or not self.params.icp or not starts:
+            return [self.icp(ident, R, t, fitness, quick) for R, t, fitness in starts]
+        from pipeline.method.refinement.icp_torch import refine_icp_batch
+
+        params = self.params
+        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
+            {"iterations": params.iterations}
+        done = refine_icp_batch(self.models[ident["obj_id"]], self.points[ident["cand_id"]],
+                                np.stack([np.reshape(R, (3, 3)) for R, _, _ in starts]),
+                                np.stack([np.reshape(t, 3) for _, t, _ in starts]), self.diameters[ident["obj_id"]],
+                                max_corr_dist_frac=params.max_corr_frac, point_to_plane=params.point_to_plane,
+                                device=self.icp_device, **schedule)
+        return [(res.R, res.t, float(res.fitness), float(res.inlier_rmse)) for res in done]
 
     def icp(self, ident: dict[str, Any], R: np.ndarray, t: np.ndarray, fitness: float, quick: bool = False) -> tuple:
         """The hypothesis' pose and fit after ICP: (R, t, fitness, inlier_rmse mm);
@@ -802,15 +826,15 @@ class _RefineWork:
         ident = {k: parent[k] for k in ("cand_id", "scene_id", "im_id", "obj_id", "prior_score")}
         ident |= {"parent": parent["hyp"], "source": "turn"}
         R0, t0_ = np.reshape(parent["R"], (3, 3)), np.asarray(parent["t"], float)
-        quick = [self.icp(ident, *turned(R0, t0_, Ti), float("nan"), quick=True) for Ti in T]
+        quick = self.icp_many(ident, [(*turned(R0, t0_, Ti), float("nan")) for Ti in T], quick=True)
         order = np.argsort(-np.nan_to_num([q[2] for q in quick], nan=-1.0), kind="stable")
         # Distinct from the parent and from each other (turns that slid to one pose are
         # one hypothesis), as register keeps its hypotheses distinct.
         keep = distinct_poses([(R0, t0_)] + [quick[j][:2] for j in order], params.turns + 1, 5.0,
                               0.05 * self.diameters[parent["obj_id"]])
         best = [order[i - 1] for i in keep if i > 0]
-        rows = [self.verified(ident | {"hyp": first_hyp + k}, self.icp(ident, *quick[j][:2], quick[j][2]), 0, 0.0)
-                for k, j in enumerate(best)]
+        poses = self.icp_many(ident, [(*quick[j][:2], quick[j][2]) for j in best])
+        rows = [self.verified(ident | {"hyp": first_hyp + k}, pose, 0, 0.0) for k, pose in enumerate(poses)]
         dt = time.perf_counter() - t0  # the quick ICPs count even when no turn is kept
         for r in rows:
             r["time_s"] = dt / len(rows)
@@ -821,15 +845,22 @@ def _refine_one(work: _RefineWork, group: list[dict[str, Any]]) -> tuple[list[di
     """One candidate's hypotheses (register's rows ``group``) after ICP and verification,
     with the turns of its best; and the candidate's time (s)."""
     mine, total = [], 0.0
-    for c in group:
+    idents = [{"cand_id": int(c["cand_id"]), "scene_id": int(c["scene_id"]), "im_id": int(c["im_id"]),
+               "obj_id": int(c["obj_id"]), "hyp": int(c["hyp"]), "parent": -1, "source": str(c["source"]),
+               "prior_score": float(c["prior_score"])} for c in group]
+    starts = [(np.asarray(c["R"], float).reshape(3, 3), np.asarray(c["t"], float), float(c["ransac_fitness"]))
+              for c in group]
+    poses: list[tuple | None] = [None] * len(group)
+    shared = 0.0  # the batched ICP's time, shared evenly by the hypotheses
+    if work.icp_device is not None:
         t0 = time.perf_counter()
-        ident = {"cand_id": int(c["cand_id"]), "scene_id": int(c["scene_id"]), "im_id": int(c["im_id"]),
-                 "obj_id": int(c["obj_id"]), "hyp": int(c["hyp"]), "parent": -1, "source": str(c["source"]),
-                 "prior_score": float(c["prior_score"])}
-        pose = work.icp(ident, np.asarray(c["R"], float).reshape(3, 3), np.asarray(c["t"], float),
-                        float(c["ransac_fitness"]))
+        poses = work.icp_many(idents[0], starts)
+        shared = (time.perf_counter() - t0) / len(group)
+    for c, ident, start, pose in zip(group, idents, starts, poses):
+        t0 = time.perf_counter()
+        pose = pose if pose is not None else work.icp(ident, *start)
         mine.append(work.verified(ident, pose, int(c["n_inliers"]), float(c["inlier_ratio"])))
-        mine[-1]["time_s"] = dt = time.perf_counter() - t0
+        mine[-1]["time_s"] = dt = time.perf_counter() - t0 + shared
         total += dt
     turned, dt = work.turned_rows(work.best_of(mine), max(r["hyp"] for r in mine) + 1)
     return mine + turned, total + dt

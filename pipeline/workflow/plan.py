@@ -481,6 +481,23 @@ def encoder_runtime(enc: Any) -> dict[str, Any]:
             "precision": getattr(enc, "precision", None)}
 
 
+def icp_device(run: cfg.RunManifest) -> str | None:
+    """Where refine's ICP runs for ``run``: ``cuda`` where the run's device is (``cuda``,
+    or ``auto`` with CUDA visible), the batched torch ICP; else None, the numpy ICP one
+    hypothesis at a time, which is the faster on a CPU (20 starts of 1000 scene points
+    against 5000 model points: 0.06 s against 6 s for torch's brute-force neighbours)."""
+    device = _run_device(run)
+    if device is None:
+        from importlib.metadata import version
+
+        if version("torch").endswith("+cpu"):
+            return None  # the CPU wheel sees no GPU: no need to import torch (1 s) to know
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    return "cuda" if device == "cuda" else None
+
+
 def warm_imports(*modules: str) -> None:
     """Import ``modules`` now, before a stage starts its clock per image: loading a library
     once per job (torch 1.1 s, pyrender and trimesh 0.5 s on this CPU) is not time spent
