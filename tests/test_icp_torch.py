@@ -86,3 +86,20 @@ def test_batch_rejects_bad_input(view):
     with pytest.raises(ValueError, match="translations"):
         refine_icp_batch(model, scene, np.stack([R, R]), t[None], diameter)
     assert refine_icp_batch(model, scene, np.zeros((0, 3, 3)), np.zeros((0, 3)), diameter) == []
+
+
+def test_neighbours_in_blocks_equal_one_block(monkeypatch):
+    """The distance matrix split into blocks of starts and of scene points (the fine ICP's
+    2000 x 20000 would not fit one) gives the same neighbours and distances."""
+    import torch
+
+    import pipeline.method.refinement.icp_torch as icp_torch
+
+    rng = np.random.default_rng(0)
+    q = torch.as_tensor(rng.normal(size=(3, 700, 3)) * 50)
+    model = torch.as_tensor(rng.normal(size=(900, 3)) * 50)
+    d_one, i_one = icp_torch._nearest(q, model, 30.0)
+    monkeypatch.setattr(icp_torch, "NN_CHUNK", 1000)  # one scene point and one start a block
+    d_blocks, i_blocks = icp_torch._nearest(q, model, 30.0)
+    assert torch.equal(i_one, i_blocks) and torch.equal(d_one, d_blocks)
+    assert torch.isinf(d_one).any() and (i_one[torch.isinf(d_one)] == len(model)).all()  # beyond the threshold

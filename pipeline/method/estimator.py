@@ -255,7 +255,7 @@ class Estimator:
         try:
             # A verifier and a fine ICP per thread: a renderer belongs to the thread that
             # made it, and the loaders that keep the last image are not shared between threads.
-            tools = mapper.per_thread(partial(_ThreadTools, images, p, fine_objects))
+            tools = mapper.per_thread(partial(_ThreadTools, images, p, fine_objects, self.icp_device))
             hypotheses, refined, image_time = refine_candidates(
                 registered, scene_points, models.__getitem__, diameters, p, ThreadMethod(tools, "verify"),
                 ThreadMethod(tools, "fine") if fine_objects is not None else None, progress, turns, mapper,
@@ -348,12 +348,13 @@ def _seed(seed: int, step: str, cand_id: int) -> int:
 
 class _ThreadTools:
     """One thread's verifier and fine ICP, sharing that thread's loaders (which keep the
-    last image and mask). ``fine_objects``: the objects the fine ICP refines (None: off)."""
+    last image and mask). ``fine_objects``: the objects the fine ICP refines (None: off);
+    ``icp_device``: where the fine ICP runs (None: numpy)."""
 
-    def __init__(self, loaders: SceneImages, params: Any, fine_objects: set[int] | None):
+    def __init__(self, loaders: SceneImages, params: Any, fine_objects: set[int] | None, icp_device: str | None = None):
         images = loaders.keeping_last()
         self.verify = PoseVerifier(images, params)
-        self.fine = FineIcp(images, params, fine_objects) if fine_objects is not None else None
+        self.fine = FineIcp(images, params, fine_objects, icp_device) if fine_objects is not None else None
 
     def close(self) -> None:
         self.verify.__exit__(None, None, None)

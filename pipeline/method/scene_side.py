@@ -609,8 +609,9 @@ class FineIcp:
     15-20 degrees about their axes and AR fell from 0.82 to 0.74); the pose is then left
     to SAR."""
 
-    def __init__(self, images: SceneImages, params: RefineParams, objects: set[int]):
+    def __init__(self, images: SceneImages, params: RefineParams, objects: set[int], icp_device: str | None = None):
         self.images, self.params, self.objects = images, params, set(objects)
+        self.icp_device = icp_device  # None: the numpy ICP; else the torch ICP on this device
         self._models: dict[int, Any] = {}  # obj_id -> IcpModel of the dense samples
 
     def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray,
@@ -631,8 +632,15 @@ class FineIcp:
         if len(pts) < 3:
             return None
         pts = pts[sample_candidate(len(pts), self.params.fine_icp_points, seed=cand_id)]
-        res = refine_icp(self._models[obj_id], None, pts, R, t, diameter, max_corr_dist_frac=self.params.max_corr_frac,
-                         iterations=self.params.iterations, point_to_plane=self.params.point_to_plane)
+        kw = {"max_corr_dist_frac": self.params.max_corr_frac, "iterations": self.params.iterations,
+              "point_to_plane": self.params.point_to_plane}
+        if self.icp_device is not None:
+            from pipeline.method.refinement.icp_torch import refine_icp_batch
+
+            (res,) = refine_icp_batch(self._models[obj_id], pts, R[None], t[None], diameter, device=self.icp_device,
+                                      **kw)
+        else:
+            res = refine_icp(self._models[obj_id], None, pts, R, t, diameter, **kw)
         return res.R, res.t
 
 
@@ -676,6 +684,7 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     or a torch device (``cuda``) where a candidate's hypotheses, and its turns, are
     aligned together (:func:`pipeline.method.refinement.icp_torch.refine_icp_batch`, in
     float64: the numpy ICP's poses where a start converges, the same choices and AR).
+    The fine ICP has its own (:class:`FineIcp`).
 
     Returns the hypotheses (:data:`HYPOTHESIS_COLUMNS`, ``chosen`` marking each
     candidate's), the candidates (:data:`CANDIDATE_COLUMNS`: the chosen hypothesis'

@@ -482,10 +482,11 @@ def encoder_runtime(enc: Any) -> dict[str, Any]:
 
 
 def icp_device(run: cfg.RunManifest) -> str | None:
-    """Where refine's ICP runs for ``run``: ``cuda`` where the run's device is (``cuda``,
-    or ``auto`` with CUDA visible), the batched torch ICP; else None, the numpy ICP one
-    hypothesis at a time, which is the faster on a CPU (20 starts of 1000 scene points
-    against 5000 model points: 0.06 s against 6 s for torch's brute-force neighbours)."""
+    """Where refine's ICPs (hypotheses, turns, fine) run for ``run``: ``cuda`` where the
+    run's device is (``cuda``, or ``auto`` with CUDA visible), the batched torch ICP; else
+    None, the numpy ICP one hypothesis at a time, which is the faster on a CPU (20 starts
+    of 1000 scene points against 5000 model points: 0.06 s against 6 s for torch's
+    brute-force neighbours)."""
     device = _run_device(run)
     if device is None:
         from importlib.metadata import version

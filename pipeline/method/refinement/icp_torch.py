@@ -36,7 +36,8 @@ from pipeline.method.refinement.icp import MIN_STEP_FRAC, STALL_GAIN, STALL_ITER
 
 NN_CHUNK = 1 << 24
 """Largest number of (scene point, model point) distances held at once (128 MiB in
-float64): the starts are queried in groups small enough for this."""
+float64): the starts, and for large clouds the scene points, are queried in blocks
+small enough for this."""
 
 
 def _nearest(q, model, threshold: float):
@@ -47,10 +48,13 @@ def _nearest(q, model, threshold: float):
 
     b, m = q.shape[:2]
     n = len(model)
-    per = max(1, NN_CHUNK // max(1, m * n))
+    rows = max(1, min(m, NN_CHUNK // max(1, n)))  # scene points per block (the fine ICP: 2000 x 20000)
+    per = max(1, NN_CHUNK // max(1, rows * n))    # starts per block
     idx = torch.empty((b, m), dtype=torch.long, device=q.device)
     for s in range(0, b, per):
-        idx[s:s + per] = torch.cdist(q[s:s + per], model.expand(min(per, b - s), n, 3)).argmin(dim=2)
+        for r in range(0, m, rows):
+            block = q[s:s + per, r:r + rows]
+            idx[s:s + per, r:r + rows] = torch.cdist(block, model.expand(len(block), n, 3)).argmin(dim=2)
     # The distance again from the chosen pair: cdist's matrix-product form loses digits.
     dist = torch.linalg.vector_norm(q - model[idx], dim=2)
     far = dist > threshold
