@@ -771,15 +771,19 @@ class _RefineWork:
             return [self.icp(ident, R, t, fitness, quick) for R, t, fitness in starts]
         from pipeline.method.refinement.icp_torch import refine_icp_batch
 
-        params = self.params
-        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
-            {"iterations": params.iterations}
         done = refine_icp_batch(self.models[ident["obj_id"]], self.points[ident["cand_id"]],
                                 np.stack([np.reshape(R, (3, 3)) for R, _, _ in starts]),
                                 np.stack([np.reshape(t, 3) for _, t, _ in starts]), self.diameters[ident["obj_id"]],
-                                max_corr_dist_frac=params.max_corr_frac, point_to_plane=params.point_to_plane,
-                                device=self.icp_device, **schedule)
+                                device=self.icp_device, **self.icp_options(quick))
         return [(res.R, res.t, float(res.fitness), float(res.inlier_rmse)) for res in done]
+
+    def icp_options(self, quick: bool) -> dict[str, Any]:
+        """The ICP's keyword arguments from refine's parameters; ``quick``: only the
+        coarsest correspondence distance, :data:`QUICK_ICP_ITERATIONS` iterations."""
+        params = self.params
+        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
+            {"iterations": params.iterations}
+        return {"max_corr_dist_frac": params.max_corr_frac, "point_to_plane": params.point_to_plane, **schedule}
 
     def icp(self, ident: dict[str, Any], R: np.ndarray, t: np.ndarray, fitness: float, quick: bool = False) -> tuple:
         """The hypothesis' pose and fit after ICP: (R, t, fitness, inlier_rmse mm);
@@ -787,14 +791,10 @@ class _RefineWork:
         iterations."""
         from pipeline.method.refinement.icp import refine_icp
 
-        params = self.params
-        if not params.icp:
+        if not self.params.icp:
             return R, t, fitness, float("nan")
-        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
-            {"iterations": params.iterations}
         res = refine_icp(self.models[ident["obj_id"]], None, self.points[ident["cand_id"]], R, t,
-                         self.diameters[ident["obj_id"]], max_corr_dist_frac=params.max_corr_frac,
-                         point_to_plane=params.point_to_plane, **schedule)
+                         self.diameters[ident["obj_id"]], **self.icp_options(quick))
         return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
 
     def verified(self, ident: dict[str, Any], pose: tuple, n_inliers: int, inlier_ratio: float) -> dict[str, Any]:

@@ -155,6 +155,20 @@ def _point_step(q: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return Rw, c, v, float(np.radians(rotation_angle_deg(np.eye(3), Rw))) * L + float(np.linalg.norm(v))
 
 
+def checked_inputs(model: IcpModel, scene_points: np.ndarray, schedule: Sequence[float], point_to_plane: bool,
+                   caller: str) -> np.ndarray:
+    """The scene points as (M, 3) float64 mm, after the checks every ICP entry point
+    (``caller``, named in the error) makes of its inputs."""
+    if point_to_plane and model.normals is None:
+        raise ValueError(f"{caller}: point_to_plane=True needs model_normals")
+    scene = np.asarray(scene_points, dtype=np.float64).reshape(-1, 3)
+    if len(scene) == 0:
+        raise ValueError(f"{caller}: the scene point cloud is empty")
+    if not len(schedule):
+        raise ValueError(f"{caller}: schedule must not be empty")
+    return scene
+
+
 def refine_icp(
     model: IcpModel | np.ndarray,
     model_normals: np.ndarray | None,
@@ -187,13 +201,7 @@ def refine_icp(
         if point_to_plane and model_normals is None:
             raise ValueError("refine_icp: point_to_plane=True needs model_normals")
         model = IcpModel(model, model_normals if point_to_plane else None)
-    elif point_to_plane and model.normals is None:
-        raise ValueError("refine_icp: point_to_plane=True needs model_normals")
-    scene = np.asarray(scene_points, dtype=np.float64).reshape(-1, 3)
-    if len(scene) == 0:
-        raise ValueError("refine_icp: the scene point cloud is empty")
-    if not len(schedule):
-        raise ValueError("refine_icp: schedule must not be empty")
+    scene = checked_inputs(model, scene_points, schedule, point_to_plane, "refine_icp")
     R, t = invert(R0, t0)  # camera -> model
     min_step = float(min_step_frac * diameter)
     done = 0

@@ -28,16 +28,43 @@ the scene is aligned to the model, as in :mod:`pipeline.method.refinement.icp`.
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Sequence
 
 import numpy as np
 
-from pipeline.method.refinement.icp import MIN_STEP_FRAC, STALL_GAIN, STALL_ITERATIONS, WEAK_FRAC, IcpModel, IcpResult
+from pipeline.method.refinement.icp import (
+    MIN_STEP_FRAC,
+    STALL_GAIN,
+    STALL_ITERATIONS,
+    WEAK_FRAC,
+    IcpModel,
+    IcpResult,
+    checked_inputs,
+)
 
 NN_CHUNK = 1 << 24
 """Largest number of (scene point, model point) distances held at once (128 MiB in
 float64): the starts, and for large clouds the scene points, are queried in blocks
 small enough for this."""
+
+
+_ON_DEVICE: "weakref.WeakKeyDictionary[IcpModel, dict]" = weakref.WeakKeyDictionary()
+"""IcpModel -> {(device, dtype): (points, normals)}: a model's tensors, copied to a device
+once, as IcpModel builds its k-d tree once (every candidate's ICPs on the object reuse
+them; a GPU would otherwise receive the model again for each candidate, turn and fine ICP)."""
+
+
+def _model_tensors(model: IcpModel, kw: dict):
+    """``model``'s points and normals (None without) as tensors with ``kw`` (dtype, device)."""
+    import torch
+
+    key = (str(kw["device"]), str(kw["dtype"]))
+    cached = _ON_DEVICE.setdefault(model, {})
+    if key not in cached:
+        cached[key] = (torch.as_tensor(model.points, **kw),
+                       None if model.normals is None else torch.as_tensor(model.normals, **kw))
+    return cached[key]
 
 
 def _nearest(q, model, threshold: float):
@@ -150,13 +177,7 @@ def refine_icp_batch(
     there. Returns one :class:`IcpResult` per start, in their order."""
     import torch
 
-    if point_to_plane and model.normals is None:
-        raise ValueError("refine_icp_batch: point_to_plane=True needs model normals")
-    scene_np = np.asarray(scene_points, dtype=np.float64).reshape(-1, 3)
-    if len(scene_np) == 0:
-        raise ValueError("refine_icp_batch: the scene point cloud is empty")
-    if not len(schedule):
-        raise ValueError("refine_icp_batch: schedule must not be empty")
+    scene_np = checked_inputs(model, scene_points, schedule, point_to_plane, "refine_icp_batch")
     R0 = np.asarray(R0, dtype=np.float64).reshape(-1, 3, 3)
     t0 = np.asarray(t0, dtype=np.float64).reshape(-1, 3)
     if len(R0) != len(t0):
@@ -164,8 +185,7 @@ def refine_icp_batch(
     if not len(R0):
         return []
     kw = {"dtype": getattr(torch, dtype), "device": torch.device(device)}
-    pts = torch.as_tensor(model.points, **kw)
-    nrm = torch.as_tensor(model.normals, **kw) if point_to_plane else None
+    pts, nrm = _model_tensors(model, kw)
     scene = torch.as_tensor(scene_np, **kw)
     Rm = torch.as_tensor(R0, **kw)
     R = Rm.transpose(1, 2).contiguous()                      # camera -> model
