@@ -17,7 +17,9 @@ side per image (segment_prior + scene_features + register + refine, over the dat
 target images: BOP's time per image counts everything after onboarding, model loads
 included as they happen here) beside the paper's 2.72 s per image (FreeZe, one A40), the
 onboarding per object, peak GPU memory (``torch.cuda.max_memory_allocated``) and this
-process's peak RSS, the encoders' device and precision, and the AR.
+process's peak RSS, the encoders' device and precision, the paths the scene side took
+(register's and refine's manifests' ``runtime``: numpy, or torch on the device, for
+RANSAC, the ICP and the verification), and the AR.
 """
 
 from __future__ import annotations
@@ -115,6 +117,9 @@ def run(dataset: str, geometric: str, visual: str, device: str, weights: Path, c
     scores = json.loads((plan["score"].item_dir("all") / "scores.json").read_text())["summary"]
     n_images = sum(len(v) for v in plan.scene_images.values())
     encoders = dict(zip(("geometric", "visual"), map(encoder_runtime, build_encoders(run_manifest))))
+    first = plan.scene_items[0]
+    paths = {key: json.loads(plan[stage].manifest(first).read_text()).get("runtime", {}).get(key, "numpy")
+             for stage, key in (("register", "ransac"), ("refine", "icp"), ("refine", "verification"))}
     return {
         "dataset": dataset, "geometric": geometric, "visual": visual, "device": device,
         "gpu": torch.cuda.get_device_name(device) if on_cuda else None,
@@ -125,7 +130,7 @@ def run(dataset: str, geometric: str, visual: str, device: str, weights: Path, c
                                                                        "model_features")) / max(1, len(plan.obj_ids)),
         "peak_gpu_gb": torch.cuda.max_memory_allocated() / 2**30 if on_cuda else None,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
-        "encoders": encoders, "AR": scores.get("AR"),
+        "encoders": encoders, "scene_paths": paths, "AR": scores.get("AR"),
     }
 
 
@@ -135,7 +140,9 @@ def report(m: dict, written: list[str]) -> str:
              + (f" ({m['gpu']})" if m["gpu"] else ""), "",
              f"torch {m['torch']}; {m['n_objects']} objects, {m['n_images']} images, {m['n_targets']} targets; "
              f"weights: {'random, written by this run' if written else 'the weights folder given'}; "
-             f"encoders: {json.dumps(m['encoders'], sort_keys=True)}.", "",
+             f"encoders: {json.dumps(m['encoders'], sort_keys=True)}; scene side's paths: register's RANSAC "
+             f"{m['scene_paths']['ransac']}, refine's ICP {m['scene_paths']['icp']} and verification "
+             f"{m['scene_paths']['verification']}.", "",
              "| stage | seconds |", "|---|---|"]
     lines += [f"| {s} | {v:.1f} |" for s, v in m["seconds"].items()]
     paper = m["scene_s_per_image"] / PAPER_S_PER_IMAGE

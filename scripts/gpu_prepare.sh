@@ -13,22 +13,28 @@
 #               libglx0, libgles2) that pyrender's EGL needs, for amd64;
 # .gpu/dinov2-official
 #               a copy of ../shared/reference/dinov2-official, the oracle of
-#               benchmarks/gpu_oracles.py (it never enters the repository).
+#               benchmarks/gpu_oracles.py (it never enters the repository);
+# .gpu/shared/realdata/lmo-rgb-scene2
+#               a copy of the 40 real LM-O images and models semilmo is built from
+#               (gpu_check.sh's steps 4 and 5; 32 MB).
 #
 # open3d is not carried: its wheel (100 MB) is over what reaches the machine (64 MiB in
 # all); gpu_check.sh uses scripts/gpu_shim/open3d there instead (see its docstring).
-# The whole of .gpu/ is about 20 MB. A failed download stops the script with one line.
+# The whole of .gpu/ is about 52 MB (with the repository's 6 MB, under the 64 MiB that
+# reaches the machine). A failed download stops the script with one line.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYV="3.12"
 case "${1:-}" in
   --python-version) PYV="$2" ;;
-  -h|--help) sed -n '2,22p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+  -h|--help) sed -n '2,24p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
   "") ;;
   *) echo "gpu_prepare: unknown option $1 (see --help)" >&2; exit 2 ;;
 esac
 [ -x .venv/bin/python ] || { echo "gpu_prepare: no .venv here: run scripts/install.sh first" >&2; exit 1; }
 SHARED_REF="../shared/reference/dinov2-official"
+LMO="../shared/realdata/lmo-rgb-scene2"
+[ -f "$LMO/camera.json" ] || { echo "gpu_prepare: $LMO is missing (the LM-O sample of semilmo)" >&2; exit 1; }
 [ -f "$SHARED_REF/dinov2/hub/backbones.py" ] || { echo "gpu_prepare: $SHARED_REF is missing (the official DINOv2 code)" >&2; exit 1; }
 
 # The packages the GPU check imports that the machine's image does not have (found by
@@ -75,4 +81,7 @@ rm -f .gpu/debs/*.deb
 
 rm -rf .gpu/dinov2-official
 cp -r "$SHARED_REF" .gpu/dinov2-official
-echo "gpu_prepare: .gpu ready ($(du -sh .gpu | cut -f1)): $(ls .gpu/wheels | wc -l) wheels, $(ls .gpu/debs | wc -l) debs, the official DINOv2 code"
+rm -rf .gpu/shared
+mkdir -p .gpu/shared/realdata
+cp -r "$LMO" .gpu/shared/realdata/
+echo "gpu_prepare: .gpu ready ($(du -sh .gpu | cut -f1)): $(ls .gpu/wheels | wc -l) wheels, $(ls .gpu/debs | wc -l) debs, the official DINOv2 code, the LM-O sample"

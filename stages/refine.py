@@ -51,8 +51,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.common.progress import progress_bar
     from pipeline.formats.bop.detections import prior_row_mask
     from pipeline.method.estimator import Estimator
-    from pipeline.method.scene_side import SceneImages, packed_points, time_table
-    from pipeline.workflow.plan import build_encoders, encoder_runtime, icp_device, warm_imports
+    from pipeline.method.scene_side import SceneImages, packed_points, path_name, time_table
+    from pipeline.workflow.plan import build_encoders, encoder_runtime, scene_device, warm_imports
     from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("refine", item)
@@ -77,7 +77,7 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
                          mesh=bop.load_model, candidate=candidate)
     estimator = Estimator(prepared_objects(io, bop, features=("points", "normals"), symmetries=True),
                           plan.run.stages, lambda: build_encoders(plan.run), image_mode=plan.dataset.image_mode,
-                          icp_device=icp_device(plan.run))
+                          scene_device=scene_device(plan.run))
     warm_imports("pyrender", "pipeline.method.render.renderer", "pipeline.method.refinement.sar",
                  "pipeline.method.refinement.verification", "pipeline.method.refinement.icp")
     with progress_bar(f"refine {item}", total=registered.cand_id.nunique(), enabled=progress) as bar, \
@@ -89,8 +89,9 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
         refined = estimator.refine_by_symmetry(refined, images, lambda n: bar.set_total(n) or bar.advance, untextured)
     table, poses = refined.candidates, refined.poses
     with io.publish() as w:
-        # Where the ICP ran, and SAR's encoder passes in what precision (recorded, not keyed).
-        w.manifest["runtime"] = {"icp": "numpy" if estimator.icp_device is None else f"torch-{estimator.icp_device}"}
+        # Where the ICP and the verification's comparisons ran, and SAR's encoder passes in what precision (recorded, not keyed).
+        w.manifest["runtime"] = {"icp": path_name(estimator.scene_device),
+                                 "verification": path_name(estimator.scene_device)}
         if refined.sar_encoder is not None:
             w.manifest["runtime"]["visual"] = encoder_runtime(refined.sar_encoder)
         w.write("candidate_choices", table)

@@ -34,7 +34,8 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     from pipeline.common.parallel import job_mapper
     from pipeline.common.progress import progress_bar
     from pipeline.method.estimator import Estimator
-    from pipeline.method.scene_side import time_table
+    from pipeline.method.scene_side import path_name, time_table
+    from pipeline.workflow.plan import scene_device
     from pipeline.workflow.prepared import prepared_objects
 
     io = plan.io("register", item)
@@ -42,13 +43,16 @@ def run(plan: DatasetPlan, item: str, progress: bool = True) -> None:
     scene = io.arrays("scene_features", "features")
     cands = io.table("scene_features", "candidate_status")
     # no encoder: registration matches the features both sides already hold
-    estimator = Estimator(prepared_objects(io, io.bop(), features=()), plan.run.stages)
+    estimator = Estimator(prepared_objects(io, io.bop(), features=()), plan.run.stages,
+                          scene_device=scene_device(plan.run))
     with progress_bar(f"register {item}", total=len(cands), enabled=progress) as bar, \
             job_mapper(plan.run.dask_scheduler, THREADS_HELP) as mapper:
         registered = estimator.register(cands, scene, lambda cand_id: io.candidate_seed(int(cand_id), p.seed),
                                         bar.advance, mapper)
     table = registered.table
     with io.publish() as w:
+        # Where RANSAC's loop and the feature matching ran (recorded, not keyed).
+        w.manifest["runtime"] = {"ransac": path_name(estimator.scene_device)}
         w.write("coarse_hypotheses", table)
         w.write("image_times", time_table(scene_id, registered.image_time))
         w.write("pca", registered.pca, attrs={"pca_dim": p.pca_dim})

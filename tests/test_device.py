@@ -127,6 +127,29 @@ def test_run_device_replaces_the_manifests_device(weights, tiny_vits14, no_cuda)
     assert encoder_runtime(fpfh) == {"encoder": "fpfh", "device": "cpu", "precision": None}
 
 
+def test_the_scene_side_takes_the_torch_paths_only_where_the_device_is_cuda(monkeypatch):
+    """plan.scene_device: None (the numpy RANSAC and ICP) for device=cpu, and for auto
+    without CUDA, whether torch is the CPU wheel (not even imported) or a CUDA build that
+    sees no GPU; ``cuda`` for device=cuda, and for auto where CUDA is visible."""
+    import importlib.metadata
+
+    from pipeline.workflow.plan import scene_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert scene_device(_run(device="cpu")) is None
+    assert scene_device(_run(device="cuda")) == "cuda"
+    real_version = importlib.metadata.version
+    monkeypatch.setattr(importlib.metadata, "version",
+                        lambda name: "2.13.0+cu128" if name == "torch" else real_version(name))
+    assert scene_device(_run(device="auto")) == "cuda"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert scene_device(_run(device="auto")) is None
+    monkeypatch.setattr(importlib.metadata, "version",
+                        lambda name: "2.13.0+cpu" if name == "torch" else real_version(name))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: pytest.fail("the CPU wheel needs no CUDA check"))
+    assert scene_device(_run(device="auto")) is None
+
+
 def test_build_encoders_pass_the_run_device_and_download_permission(weights, tiny_vits14, monkeypatch):
     calls = []
     real = registry.build_encoder
@@ -207,7 +230,7 @@ def test_keys_are_the_same_on_every_device_at_the_same_precision(weights, tiny_v
 @pytest.mark.slow
 def test_stage_manifests_record_device_and_precision(weights, tiny_vits14, tmp_path):
     """model_features and scene_features record where their encoders ran, refine where
-    SAR's visual encoder and the ICP ran (synthtiny with small stage parameters, GeDi at one radius)."""
+    SAR's visual encoder, the ICP and the verification ran, register where RANSAC ran (synthtiny with small stage parameters, GeDi at one radius)."""
     from stages import run_stage
 
     data = _run(weights, geometric="gedi-r03", device="cpu").model_dump()
@@ -231,7 +254,10 @@ def test_stage_manifests_record_device_and_precision(weights, tiny_vits14, tmp_p
         assert "device" not in json.dumps(manifest["params"])  # recorded, not keyed
         assert manifest["params"]["encoders"]["visual"]["params"]["precision"] == precision  # keyed
     refine = json.loads((plan["refine"].item_dir("scene_000001") / "_manifest.json").read_text())
-    assert refine["summary"]["n_sar"] > 0 and refine["runtime"] == {"visual": want["visual"], "icp": "numpy"}
+    assert refine["summary"]["n_sar"] > 0 and refine["runtime"] == {"visual": want["visual"], "icp": "numpy",
+                                                                "verification": "numpy"}
+    register = json.loads((plan["register"].item_dir("scene_000001") / "_manifest.json").read_text())
+    assert register["runtime"] == {"ransac": "numpy"}  # device=cpu: the numpy paths
 
 
 # --- the encoders compute on the device ------------------------------------------------------

@@ -69,5 +69,33 @@ def test_dbscan_gives_open3d_s_partition(shim, seed):
 
 
 def test_anything_else_fails_loudly(shim):
-    with pytest.raises(NotImplementedError, match="open3d.pipelines.registration"):
-        shim.pipelines.registration
+    with pytest.raises(NotImplementedError, match="open3d.pipelines.registration.registration_ransac"):
+        shim.pipelines.registration.registration_ransac_based_on_correspondence
+    with pytest.raises(NotImplementedError, match="open3d.t.geometry"):
+        shim.t.geometry
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fpfh_equals_open3d(shim, seed):
+    """FPFH as the default geometric encoder computes it (radius search, and hybrid with
+    max_nn), on a bumpy sheet with a detached blob and isolated far points (no
+    neighbour: all zero), with the sheet's normals estimated by open3d."""
+    pts = _cloud(seed)[:-10]  # without the duplicates: which of two coincident points is "itself" is open3d's choice
+    ref = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    ref.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=6.0, max_nn=30))
+    normals = np.asarray(ref.normals)
+    ours = shim.geometry.PointCloud(shim.utility.Vector3dVector(pts))
+    ours.normals = shim.utility.Vector3dVector(normals)
+    for radius, max_nn in ((8.0, None), (15.0, None), (15.0, 40), (1.0, 10)):
+        if max_nn is None:
+            a_search, b_search = o3d.geometry.KDTreeSearchParamRadius(radius), \
+                shim.geometry.KDTreeSearchParamRadius(radius)
+        else:
+            a_search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn)
+            b_search = shim.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn)
+        a = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(ref, a_search).data)
+        b = shim.pipelines.registration.compute_fpfh_feature(ours, b_search).data
+        assert b.shape == a.shape == (33, len(pts))
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-9, err_msg=f"radius {radius}, max_nn {max_nn}")
+        assert (a[:, -8:] == 0).all()  # the far points have no neighbour
+        assert radius < 8 or (a[:, :100] != 0).any(axis=0).all()  # the sheet's do

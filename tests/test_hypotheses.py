@@ -321,12 +321,14 @@ def test_a_turn_of_the_best_hypothesis_recovers_a_pose_ransac_got_half_a_turn_wr
             assert (hyps.source == "turn").sum() == 3 and (hyps[hyps.source == "turn"].parent == 0).all()
 
 
-def test_the_batched_torch_icp_makes_the_numpy_icps_choices(rendered_frame):
-    """refine_candidates with ``icp_device`` (the GPU path, here on the CPU): a
-    candidate's hypotheses and its turns aligned together by the torch ICP give the
-    numpy ICP's hypotheses (the same rows, poses to 1e-6) and the same choice."""
+def test_the_torch_paths_of_refine_make_the_numpy_paths_choices(rendered_frame):
+    """refine_candidates on the scene device (the GPU path, here on the CPU): a
+    candidate's hypotheses and its turns aligned together by the torch ICP and verified
+    together by the torch comparison give the numpy paths' hypotheses (the same rows,
+    poses to 1e-6, verification terms to 1e-6) and the same choice."""
     from pipeline.method.geometry.sampling import sample_surface
     from pipeline.method.geometry.transforms import perturb_pose
+    from pipeline.method.refinement.verification import TERMS
     from pipeline.method.scene_side import PoseVerifier
 
     f = rendered_frame
@@ -341,19 +343,30 @@ def test_the_batched_torch_icp_makes_the_numpy_icps_choices(rendered_frame):
     registered = pd.DataFrame(rows)
     images, scene, turns, model = _frame_refine_inputs(f, points, normals)
     params = RefineParams(turns=3)
-    out = {}
+    out, compared = {}, []
     for device in (None, "cpu"):
-        with PoseVerifier(images, params) as verify:
+        with PoseVerifier(images, params, device) as verify:
+            many = verify.many
+
+            def counting_many(*args, many=many):
+                compared.append((device, len(args[3])))
+                return many(*args)
+
             out[device] = refine_candidates(registered, lambda c: scene, lambda o: model, {1: f["diameter"]},
-                                            params, verify, None, turns=turns, icp_device=device)
+                                            params, verify, None, turns=turns, scene_device=device,
+                                            verify_many=counting_many)
     (h_np, c_np, _), (h_t, c_t, _) = out[None], out["cpu"]
     assert len(h_np) > len(registered)  # the turns ran
+    # numpy verifies the hypotheses one at a time, the device path all four at once
+    assert ("cpu", len(registered)) in compared and all(n < len(registered) for d, n in compared if d is None)
     for col in ("hyp", "source", "parent", "chosen", "n_inliers"):
         assert h_t[col].tolist() == h_np[col].tolist(), col
     for a, b in zip(h_t.itertuples(), h_np.itertuples()):
         assert rotation_angle_deg(np.reshape(a.R, (3, 3)), np.reshape(b.R, (3, 3))) < 1e-6, a.hyp
         assert np.abs(np.subtract(a.t, b.t)).max() < 1e-5, a.hyp
         assert a.fitness == pytest.approx(b.fitness, abs=1e-9)
+        for term in TERMS:
+            assert getattr(a, term) == pytest.approx(getattr(b, term), abs=1e-6), (a.hyp, term)
     assert c_t.hyp.tolist() == c_np.hyp.tolist()
     assert rotation_angle_deg(np.reshape(c_np.iloc[0].R, (3, 3)), f["R"]) < 3.0
 
@@ -379,3 +392,34 @@ def test_a_skipped_candidates_register_row_keeps_the_declared_dtypes():
     assert (skipped.status, skipped.source_rank, skipped.n_inliers, skipped.hyp) == ("skipped", -1, 0, 0)
     ok = table[table.cand_id == 0]
     assert rotation_angle_deg(np.asarray(ok.iloc[0].R).reshape(3, 3), R) < 1.0
+
+
+def test_register_on_the_torch_path_makes_the_numpy_paths_hypotheses():
+    """register_candidates with ``device`` (the GPU path, here on the CPU): RANSAC's loop
+    and the feature matching in torch give the numpy path's table, every hypothesis,
+    source, weight, signal and count the same and the poses to 1e-9, over candidates
+    whose modalities agree, carry no signal or only some (a fractional weight)."""
+    from pipeline.method.scene_side import register_candidates
+
+    signals = [{"geometric": 0.3, "visual": 0.3}, {"geometric": 0.5, "visual": 0.0}, {"geometric": 0.0, "visual": 0.4},
+               {"geometric": 0.08, "visual": 0.05}, {"geometric": 0.3, "visual": 0.03}]
+    tables = {}
+    for device in (None, "cpu"):
+        rows = []
+        for cand_id, signal in enumerate(signals):
+            features, scene, sf, R, t = _problem(20 + cand_id, signal)
+            candidates = pd.DataFrame({"cand_id": [cand_id], "scene_id": 1, "im_id": 0, "obj_id": 5,
+                                       "prior_score": 0.9, "status": ["ok"], "reason": [""], "n_points": [len(scene)]})
+            arrays = {"cand_id": np.array([cand_id]), "points": scene[None], "geometric": sf["geometric"][None],
+                      "visual": sf["visual"][None]}
+            table, _ = register_candidates(candidates, arrays, lambda o: matchable_model(features, 64), {5: 250.0},
+                                           RegisterParams(), lambda c: c, device=device)
+            rows.append(table)
+        tables[device] = pd.concat(rows, ignore_index=True)
+    a, b = tables[None], tables["cpu"]
+    assert len(a) > len(signals) and set(a.source) >= {"geometric", "visual", "fused"}
+    assert set(a.w_visual) > {0.0, 1.0}  # a fractional weight: the weighted fusion ran too
+    for col in a.columns.drop(["R", "t", "time_s"]):
+        assert b[col].tolist() == a[col].tolist(), col
+    np.testing.assert_allclose(np.stack(b.R), np.stack(a.R), atol=1e-9)
+    np.testing.assert_allclose(np.stack(b.t), np.stack(a.t), atol=1e-9)

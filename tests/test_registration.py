@@ -268,28 +268,28 @@ def test_fit_triangles_matches_kabsch_on_noisy_and_mirrored_triples():
 def test_edge_lengths_of_sampled_triangles_are_exact():
     import math
 
-    from pipeline.method.registration.ransac import _edge_lengths
+    from pipeline.method.registration.ransac import edge_lengths
 
     # Integer coordinates: every squared length is an exact integer, so the batched
     # lengths must equal the correctly rounded ones to the bit, edge by edge.
     rng = np.random.default_rng(8)
     pts = rng.integers(-300, 300, size=(40, 3)).astype(np.float64)
     idx = rng.integers(0, 40, size=(500, 3))
-    lengths = _edge_lengths(np.ascontiguousarray(pts.T), np.ascontiguousarray(idx.T))
+    lengths = edge_lengths(np.ascontiguousarray(pts.T), np.ascontiguousarray(idx.T))
     expected = np.array([[math.dist(pts[i], pts[j]) for i, j in ((a, b), (b, c), (c, a))] for a, b, c in idx]).T
     assert lengths.shape == (3, 500)
     np.testing.assert_array_equal(lengths, expected)
 
 
 def test_squared_residuals_expansion_matches_direct():
-    from pipeline.method.registration.ransac import _score_terms, _squared_residuals
+    from pipeline.method.registration.ransac import score_terms, squared_residuals
 
     rng = np.random.default_rng(6)
     src, dst = rng.normal(size=(400, 3)) * 40, rng.normal(size=(400, 3)) * 40
     R = np.stack([random_rotation(i) for i in range(7)])
     t = rng.normal(size=(7, 3)) * 30
     direct = np.sum((np.einsum("bij,cj->bci", R, src) + t[:, None] - dst[None]) ** 2, axis=2)
-    np.testing.assert_allclose(_squared_residuals(R, t, _score_terms(src, dst)), direct, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(squared_residuals(R, t, score_terms(src, dst)), direct, rtol=1e-9, atol=1e-8)
 
 
 def test_feature_neighbours_top1_matches_brute_force():

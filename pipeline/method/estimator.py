@@ -183,15 +183,18 @@ class Estimator:
     (scene_features, register and refine are read); encoders: the run's (geometric,
     visual) encoders, or a zero-argument loader of them (called when a step first needs
     them; None: registration alone, which matches features already computed); image_mode: ``rgb`` or ``gray`` (grey datasets get grey SAR renders).
-    icp_device: where refine's ICP runs: None for numpy (the faster on a CPU), or a torch
-    device such as ``cuda`` (see :func:`pipeline.method.scene_side.refine_candidates`).
+    scene_device: where register's RANSAC and feature matching and refine's ICP and
+    verification comparisons run: None for numpy (the faster on a CPU), or a torch
+    device such as ``cuda`` (see
+    :func:`pipeline.method.scene_side.register_candidates` and
+    :func:`~pipeline.method.scene_side.refine_candidates`).
     """
 
     def __init__(self, objects: Mapping[int, PreparedObject], stages: StageParams,
                  encoders: tuple[Any, Any] | Callable[[], tuple[Any, Any]] | None = None, *, image_mode: str = "rgb",
-                 icp_device: str | None = None):
+                 scene_device: str | None = None):
         self.objects, self.stages, self.image_mode = objects, stages, image_mode
-        self.icp_device = icp_device
+        self.scene_device = scene_device
         self._encoders = encoders
         self._matchable: dict[int, MatchableModel] = {}
 
@@ -224,7 +227,7 @@ class Estimator:
         scene_features' table, arrays its packed features; seed_of(cand_id) the RANSAC seed."""
         p = self.stages.register
         table, image_time = register_candidates(candidates, arrays, self._matchable_model, self.diameters(), p,
-                                                seed_of, progress, mapper)
+                                                seed_of, progress, mapper, self.scene_device)
         return Registered(table, image_time, pca_arrays(self._matchable))
 
     def refine(self, registered: pd.DataFrame, scene_points: Callable[[int], np.ndarray], images: SceneImages,
@@ -255,11 +258,11 @@ class Estimator:
         try:
             # A verifier and a fine ICP per thread: a renderer belongs to the thread that
             # made it, and the loaders that keep the last image are not shared between threads.
-            tools = mapper.per_thread(partial(_ThreadTools, images, p, fine_objects, self.icp_device))
+            tools = mapper.per_thread(partial(_ThreadTools, images, p, fine_objects, self.scene_device))
             hypotheses, refined, image_time = refine_candidates(
                 registered, scene_points, models.__getitem__, diameters, p, ThreadMethod(tools, "verify"),
                 ThreadMethod(tools, "fine") if fine_objects is not None else None, progress, turns, mapper,
-                self.icp_device)
+                self.scene_device, ThreadMethod(tools, "verify_many"))
         finally:
             if own:
                 mapper.close()
@@ -349,12 +352,16 @@ def _seed(seed: int, step: str, cand_id: int) -> int:
 class _ThreadTools:
     """One thread's verifier and fine ICP, sharing that thread's loaders (which keep the
     last image and mask). ``fine_objects``: the objects the fine ICP refines (None: off);
-    ``icp_device``: where the fine ICP runs (None: numpy)."""
+    ``device``: where the fine ICP and the verifier's comparisons run (None: numpy)."""
 
-    def __init__(self, loaders: SceneImages, params: Any, fine_objects: set[int] | None, icp_device: str | None = None):
+    def __init__(self, loaders: SceneImages, params: Any, fine_objects: set[int] | None, device: str | None = None):
         images = loaders.keeping_last()
-        self.verify = PoseVerifier(images, params)
-        self.fine = FineIcp(images, params, fine_objects, icp_device) if fine_objects is not None else None
+        self.verify = PoseVerifier(images, params, device)
+        self.fine = FineIcp(images, params, fine_objects, device) if fine_objects is not None else None
+
+    def verify_many(self, *args: Any) -> list:
+        """:meth:`PoseVerifier.many` of this thread's verifier."""
+        return self.verify.many(*args)
 
     def close(self) -> None:
         self.verify.__exit__(None, None, None)

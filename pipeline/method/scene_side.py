@@ -295,7 +295,7 @@ class CoarseResult:
 
 
 def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.ndarray, visual: np.ndarray,
-                      diameter: float, params: RegisterParams, seed: int) -> CoarseResult:
+                      diameter: float, params: RegisterParams, seed: int, device: str | None = None) -> CoarseResult:
     """Distinct coarse model-to-camera poses of a candidate's points (k, 3) mm with their
     geometric (k, G) and visual (k, C) features.
 
@@ -327,6 +327,10 @@ def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.n
     an earlier one (within 5 degrees and 0.05 diameters) are dropped. With both, every
     hypothesis' n_inliers and inlier_ratio count the same matches, the weighted
     fusion's top-1 matches, so that the evidence compares hypotheses of any source.
+
+    device: where RANSAC's loop and the feature matching run: None for numpy (the faster
+    on a CPU), or a torch device (``cuda``; the same samples and pools,
+    :mod:`pipeline.method.registration.ransac_torch`).
     """
     from pipeline.method.registration.fusion import apply_pca, fuse, l2_normalise
     from pipeline.method.registration.ransac import RansacParams, distinct_poses, feature_neighbours, ransac_hypotheses
@@ -338,7 +342,7 @@ def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.n
 
     def run(mf: np.ndarray, sf: np.ndarray, k: int, rows: Any = slice(None)) -> list:
         return ransac_hypotheses(model.points, mf, points[rows], sf[rows], diameter, params=ransac, seed=seed, k=k,
-                                 nms_deg=params.nms_deg, nms_frac=params.nms_frac)
+                                 nms_deg=params.nms_deg, nms_frac=params.nms_frac, device=device)
 
     found: list[Hypothesis] = []
     result = CoarseResult(found)
@@ -348,7 +352,7 @@ def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.n
             for m, (mf, sf) in feats.items():
                 found += [Hypothesis(m, j, r) for j, r in enumerate(run(mf, sf, params.hypotheses))]
         if params.weighting:
-            result = _modality_weights(model, points, feats, diameter, params, run, found)
+            result = _modality_weights(model, points, feats, diameter, params, run, found, device)
         # With one weight 0 the weighted fusion is the other modality alone, whose own
         # RANSAC (same seed, same matches) is already a hypothesis.
         weighted = (result.w_geometric, result.w_visual) != (1.0, 1.0) and (
@@ -374,7 +378,8 @@ def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.n
         # geometric inliers are not comparable, and the evidence breaks the ties that
         # depth cannot (a shape's near-symmetries).
         wg, wv = result.w_geometric, result.w_visual
-        matches = feature_neighbours(fuse(g, v, wv, wg), fuse(model.geometric, model.visual, wv, wg))[:, 0]
+        matches = feature_neighbours(fuse(g, v, wv, wg), fuse(model.geometric, model.visual, wv, wg),
+                                     device=device)[:, 0]
         thr = params.inlier_frac * diameter
         for i, h in enumerate(found):
             r = h.registration
@@ -386,7 +391,7 @@ def coarse_hypotheses(model: MatchableModel, points: np.ndarray, geometric: np.n
 
 def _modality_weights(model: MatchableModel, points: np.ndarray, feats: Mapping[str, tuple[np.ndarray, np.ndarray]],
                       diameter: float, params: RegisterParams, run: Callable[..., list],
-                      found: list[Hypothesis]) -> CoarseResult:
+                      found: list[Hypothesis], device: str | None = None) -> CoarseResult:
     """The fusion weights of :func:`coarse_hypotheses` (see there) and the signals behind them."""
     from pipeline.method.registration.fusion import match_signal, modality_weight
     from pipeline.method.registration.ransac import feature_neighbours
@@ -396,7 +401,7 @@ def _modality_weights(model: MatchableModel, points: np.ndarray, feats: Mapping[
     thr = params.inlier_frac * diameter
     z = {}  # z[m][n]: modality m's held-out matches under modality n's pose
     for m, (mf, sf) in feats.items():
-        matches = feature_neighbours(sf[held], mf)[:, 0]
+        matches = feature_neighbours(sf[held], mf, device=device)[:, 0]
         z[m] = {n: match_signal(model.points, matches, points[held], r.R, r.t, thr) for n, r in poses.items()}
     own = {m: z[m][m] for m in z}
     other = {"geometric": "visual", "visual": "geometric"}
@@ -415,9 +420,10 @@ def _modality_weights(model: MatchableModel, points: np.ndarray, feats: Mapping[
 def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarray],
                         model_of: Callable[[int], MatchableModel], diameters: Mapping[int, float],
                         params: RegisterParams, seed_of: Callable[[int], int],
-                        progress: Progress = _noop, mapper: Mapper | None = None,
+                        progress: Progress = _noop, mapper: Mapper | None = None, device: str | None = None,
                         ) -> tuple[pd.DataFrame, dict[int, float]]:
-    """Coarse hypotheses of a scene's candidates (:func:`coarse_hypotheses`).
+    """Coarse hypotheses of a scene's candidates (:func:`coarse_hypotheses`, RANSAC and
+    the feature matching on ``device``: None for numpy, else a torch device).
 
     candidates: scene_features' table (cand_id, scene_id, im_id, obj_id, prior_score, status,
     reason, n_points); arrays: its ``features.zarr`` (see :func:`pack_candidates`);
@@ -449,7 +455,7 @@ def register_candidates(candidates: pd.DataFrame, arrays: Mapping[str, np.ndarra
                                   arrays["visual"][i, :k], seed_of(int(c.cand_id))))
     # Models loaded here, once per object and in this thread, not by each worker.
     shared = _RegisterShared({o: model_of(o) for o in sorted({t.row["obj_id"] for t in todo})},
-                             {o: diameters[o] for o in sorted({t.row["obj_id"] for t in todo})}, params)
+                             {o: diameters[o] for o in sorted({t.row["obj_id"] for t in todo})}, params, device)
     image_time: dict[int, float] = {}
     for t, (found, dt) in zip(todo, (mapper or Mapper()).map(_register_one, todo, shared, progress)):
         rows_of[t.index] = found
@@ -473,11 +479,13 @@ class _RegisterItem:
 @dataclass(frozen=True)
 class _RegisterShared:
     """What every candidate of a scene's registration shares: the objects'
-    :class:`MatchableModel` and diameters (mm), the stage's parameters."""
+    :class:`MatchableModel` and diameters (mm), the stage's parameters, the device of
+    RANSAC and the matching (None: numpy)."""
 
     models: Mapping[int, MatchableModel]
     diameters: Mapping[int, float]
     params: RegisterParams
+    device: str | None = None
 
 
 def _register_one(shared: _RegisterShared, item: _RegisterItem) -> tuple[list[dict[str, Any]], float]:
@@ -485,7 +493,7 @@ def _register_one(shared: _RegisterShared, item: _RegisterItem) -> tuple[list[di
     t0 = time.perf_counter()
     row, obj_id = item.row, item.row["obj_id"]
     res = coarse_hypotheses(shared.models[obj_id], item.points, item.geometric, item.visual, shared.diameters[obj_id],
-                            shared.params, item.seed)
+                            shared.params, item.seed, shared.device)
     dt = time.perf_counter() - t0
     rows = []
     for j, h in enumerate(res.hypotheses):
@@ -549,10 +557,12 @@ def _keep_last(load: Callable[[int], Any]) -> Callable[[int], Any]:
 class PoseVerifier:
     """Verification (:mod:`pipeline.method.refinement.verification`) of poses in the images of
     one scene, with one renderer (give it :meth:`SceneImages.keeping_last` loaders). Use
-    as a context manager (it holds an EGL context)."""
+    as a context manager (it holds an EGL context). device: where :meth:`many` compares
+    a candidate's renders with the depth: None in numpy, one at a time (the faster on a
+    CPU), or a torch device, all together."""
 
-    def __init__(self, images: SceneImages, params: RefineParams):
-        self.images, self.params = images, params
+    def __init__(self, images: SceneImages, params: RefineParams, device: str | None = None):
+        self.images, self.params, self.device = images, params, device
         self._renderer = None
 
     def __enter__(self) -> "PoseVerifier":
@@ -564,7 +574,15 @@ class PoseVerifier:
 
     def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray, diameter: float,
                  evidence: float):
-        from pipeline.method.refinement.verification import verification_window, verify_pose
+        """The :class:`~pipeline.method.refinement.verification.Verification` of one pose."""
+        (v,) = self.many(im_id, cand_id, obj_id, [(R, t)], diameter, [evidence])
+        return v
+
+    def many(self, im_id: int, cand_id: int, obj_id: int, poses: Sequence[tuple[np.ndarray, np.ndarray]],
+             diameter: float, evidence: Sequence[float]) -> list:
+        """The verifications of several poses (R (3, 3), t (3,) mm) of one candidate,
+        with their evidence, in order (compared on :attr:`device`)."""
+        from pipeline.method.refinement.verification import verification_window, verify_poses
         from pipeline.method.render import Renderer
 
         depth = self.images.depth(im_id)
@@ -575,7 +593,8 @@ class PoseVerifier:
         bbox, mask = self.images.candidate(cand_id)
         tol = max(self.params.verify_min_tol_mm, self.params.verify_tol_frac * diameter)
         window = verification_window(bbox, depth.shape, self.params.verify_margin)
-        return verify_pose(self._renderer, obj_id, R, t, self.images.K(im_id), depth, mask, window, tol, evidence)
+        return verify_poses(self._renderer, obj_id, poses, self.images.K(im_id), depth, mask, window, tol, evidence,
+                            self.device)
 
 
 def fine_icp_points(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, near: np.ndarray | None,
@@ -609,9 +628,9 @@ class FineIcp:
     15-20 degrees about their axes and AR fell from 0.82 to 0.74); the pose is then left
     to SAR."""
 
-    def __init__(self, images: SceneImages, params: RefineParams, objects: set[int], icp_device: str | None = None):
+    def __init__(self, images: SceneImages, params: RefineParams, objects: set[int], device: str | None = None):
         self.images, self.params, self.objects = images, params, set(objects)
-        self.icp_device = icp_device  # None: the numpy ICP; else the torch ICP on this device
+        self.device = device  # None: the numpy ICP; else the torch ICP on this device
         self._models: dict[int, Any] = {}  # obj_id -> IcpModel of the dense samples
 
     def __call__(self, im_id: int, cand_id: int, obj_id: int, R: np.ndarray, t: np.ndarray,
@@ -634,10 +653,10 @@ class FineIcp:
         pts = pts[sample_candidate(len(pts), self.params.fine_icp_points, seed=cand_id)]
         kw = {"max_corr_dist_frac": self.params.max_corr_frac, "iterations": self.params.iterations,
               "point_to_plane": self.params.point_to_plane}
-        if self.icp_device is not None:
+        if self.device is not None:
             from pipeline.method.refinement.icp_torch import refine_icp_batch
 
-            (res,) = refine_icp_batch(self._models[obj_id], pts, R[None], t[None], diameter, device=self.icp_device,
+            (res,) = refine_icp_batch(self._models[obj_id], pts, R[None], t[None], diameter, device=self.device,
                                       **kw)
         else:
             res = refine_icp(self._models[obj_id], None, pts, R, t, diameter, **kw)
@@ -649,7 +668,8 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
                       params: RefineParams, verify: Callable[..., Any] | None = None,
                       fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None,
                       progress: Progress = _noop, turns: Mapping[int, np.ndarray] | None = None,
-                      mapper: Mapper | None = None, icp_device: str | None = None,
+                      mapper: Mapper | None = None, scene_device: str | None = None,
+                      verify_many: Callable[..., list] | None = None,
                       ) -> tuple[pd.DataFrame, pd.DataFrame, dict[int, float]]:
     """ICP and verification of every coarse hypothesis (register's rows with status
     ``ok``), and each candidate's best hypothesis.
@@ -680,11 +700,14 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     belongs to its thread). The candidates are independent and their rows come back in
     their order, so the tables do not depend on the mapper.
 
-    icp_device: None for the numpy ICP, one hypothesis at a time (the faster on a CPU),
-    or a torch device (``cuda``) where a candidate's hypotheses, and its turns, are
+    scene_device: None for the numpy paths, one hypothesis at a time (the faster on a
+    CPU), or a torch device (``cuda``) where a candidate's hypotheses, and its turns, are
     aligned together (:func:`pipeline.method.refinement.icp_torch.refine_icp_batch`, in
-    float64: the numpy ICP's poses where a start converges, the same choices and AR).
-    The fine ICP has its own (:class:`FineIcp`).
+    float64: the numpy ICP's poses where a start converges, the same choices and AR)
+    and then verified together (``verify_many``). The fine ICP has its own
+    (:class:`FineIcp`), as has the verifier's comparison (:class:`PoseVerifier`).
+    verify_many: ``verify``'s :meth:`PoseVerifier.many` (None: ``verify.many`` where it
+    has one, else ``verify`` pose by pose), which the turns use on every path.
 
     Returns the hypotheses (:data:`HYPOTHESIS_COLUMNS`, ``chosen`` marking each
     candidate's), the candidates (:data:`CANDIDATE_COLUMNS`: the chosen hypothesis'
@@ -704,11 +727,14 @@ def refine_candidates(registered: pd.DataFrame, scene_points: Callable[[int], np
     from pipeline.method.refinement.icp import IcpModel
 
     models = {o: model_of(o) for o in objects}
+    if verify_many is None and verify is not None:
+        verify_many = getattr(verify, "many", None)
     work = _RefineWork({int(g.cand_id.iloc[0]): scene_points(int(g.cand_id.iloc[0])) for g in groups},
                        {o: IcpModel(m["points"], m["normals"] if params.point_to_plane else None)
                         for o, m in models.items()} if params.icp else {},
                        {o: diameters[o] for o in objects}, params, key,
-                       verify, fine, {o: turns[o] for o in objects if turns and o in turns}, icp_device)
+                       verify, fine, {o: turns[o] for o in objects if turns and o in turns}, scene_device,
+                       verify_many)
     image_time: dict[int, float] = {}
     rows: list[dict[str, Any]] = []
     done = mapper.map(_refine_one, [g.to_dict("records") for g in groups], work, progress)
@@ -751,7 +777,8 @@ class _RefineWork:
     candidate (:func:`_refine_one`, :func:`_fine_one`): points (cand_id -> (k, 3) mm),
     models (obj_id -> :class:`pipeline.method.refinement.icp.IcpModel`, its k-d tree built once for
     every ICP on it), diameters (mm), parameters, the
-    ranking column, the verifier, the fine ICP and the turns (obj_id -> (n, 4, 4))."""
+    ranking column, the verifier, the fine ICP, the turns (obj_id -> (n, 4, 4)), the
+    torch device of the scene side (None: numpy) and the verifier of several poses."""
 
     points: Mapping[int, np.ndarray]
     models: Mapping[int, Any]
@@ -761,20 +788,21 @@ class _RefineWork:
     verify: Callable[..., Any] | None
     fine: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None
     turns: Mapping[int, np.ndarray]
-    icp_device: str | None = None
+    scene_device: str | None = None
+    verify_many: Callable[..., list] | None = None
 
     def icp_many(self, ident: dict[str, Any], starts: Sequence[tuple[np.ndarray, np.ndarray, float]],
                  quick: bool = False) -> list[tuple]:
         """:meth:`icp` of several starts (R, t, fitness) of one candidate and object:
-        one at a time in numpy, or together on ``icp_device``."""
-        if self.icp_device is None or not self.params.icp or not starts:
+        one at a time in numpy, or together on ``scene_device``."""
+        if self.scene_device is None or not self.params.icp or not starts:
             return [self.icp(ident, R, t, fitness, quick) for R, t, fitness in starts]
         from pipeline.method.refinement.icp_torch import refine_icp_batch
 
         done = refine_icp_batch(self.models[ident["obj_id"]], self.points[ident["cand_id"]],
                                 np.stack([np.reshape(R, (3, 3)) for R, _, _ in starts]),
                                 np.stack([np.reshape(t, 3) for _, t, _ in starts]), self.diameters[ident["obj_id"]],
-                                device=self.icp_device, **self.icp_options(quick))
+                                device=self.scene_device, **self.icp_options(quick))
         return [(res.R, res.t, float(res.fitness), float(res.inlier_rmse)) for res in done]
 
     def icp_options(self, quick: bool) -> dict[str, Any]:
@@ -801,17 +829,35 @@ class _RefineWork:
         """One hypothesis after ICP (``pose``, from :meth:`icp`) and verification, as a row
         of hypotheses.parquet; ident: its cand_id, scene_id, im_id, obj_id, hyp, parent,
         source, prior_score."""
+        (row,) = self.verified_many([ident], [pose], [n_inliers], [inlier_ratio], together=False)
+        return row
+
+    def verified_many(self, idents: Sequence[dict[str, Any]], poses: Sequence[tuple], n_inliers: Sequence[int],
+                      inlier_ratios: Sequence[float], together: bool = True) -> list[dict[str, Any]]:
+        """:meth:`verified` of several hypotheses of one candidate (the same cand_id,
+        im_id and obj_id), in order; ``together``: their renders compared in one call of
+        :attr:`verify_many` where there is one (on the scene device)."""
         from pipeline.method.refinement.selection import registration_evidence
 
-        R, t, fitness, rmse = pose
-        obj_id, im_id, cand_id = ident["obj_id"], ident["im_id"], ident["cand_id"]
-        evidence = registration_evidence(inlier_ratio, fitness)
-        terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
-        if self.verify is not None:
-            v = self.verify(im_id, cand_id, obj_id, R, t, self.diameters[obj_id], evidence)
-            terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.value}
-        return {**ident, "n_inliers": int(n_inliers), "inlier_ratio": float(inlier_ratio), "R": _flat(R, 9),
-                "t": _flat(t, 3), "fitness": fitness, "inlier_rmse": rmse, "evidence": evidence, **terms}
+        if not idents:
+            return []
+        obj_id, im_id, cand_id = idents[0]["obj_id"], idents[0]["im_id"], idents[0]["cand_id"]
+        evidence = [registration_evidence(r, pose[2]) for pose, r in zip(poses, inlier_ratios)]
+        checks: list = [None] * len(idents)
+        if self.verify is not None and together and self.verify_many is not None:
+            checks = self.verify_many(im_id, cand_id, obj_id, [pose[:2] for pose in poses], self.diameters[obj_id],
+                                      evidence)
+        elif self.verify is not None:
+            checks = [self.verify(im_id, cand_id, obj_id, pose[0], pose[1], self.diameters[obj_id], e)
+                      for pose, e in zip(poses, evidence)]
+        rows = []
+        for ident, (R, t, fitness, rmse), n, r, e, v in zip(idents, poses, n_inliers, inlier_ratios, evidence, checks):
+            terms = dict.fromkeys(VERIFICATION_COLUMNS, float("nan"))
+            if v is not None:
+                terms = {k: getattr(v, k) for k in VERIFICATION_COLUMNS[:-1]} | {"verification": v.value}
+            rows.append({**ident, "n_inliers": int(n), "inlier_ratio": float(r), "R": _flat(R, 9), "t": _flat(t, 3),
+                         "fitness": fitness, "inlier_rmse": rmse, "evidence": e, **terms})
+        return rows
 
     def best_of(self, rows: list[dict[str, Any]]) -> dict[str, Any]:
         """The first of a candidate's rows by :func:`hypothesis_rank` (the order of the
@@ -843,7 +889,8 @@ class _RefineWork:
                               0.05 * self.diameters[parent["obj_id"]])
         best = [order[i - 1] for i in keep if i > 0]
         poses = self.icp_many(ident, [(*quick[j][:2], quick[j][2]) for j in best])
-        rows = [self.verified(ident | {"hyp": first_hyp + k}, pose, 0, 0.0) for k, pose in enumerate(poses)]
+        rows = self.verified_many([ident | {"hyp": first_hyp + k} for k in range(len(poses))], poses,
+                                  [0] * len(poses), [0.0] * len(poses))
         dt = time.perf_counter() - t0  # the quick ICPs count even when no turn is kept
         for r in rows:
             r["time_s"] = dt / len(rows)
@@ -859,18 +906,22 @@ def _refine_one(work: _RefineWork, group: list[dict[str, Any]]) -> tuple[list[di
                "prior_score": float(c["prior_score"])} for c in group]
     starts = [(np.asarray(c["R"], float).reshape(3, 3), np.asarray(c["t"], float), float(c["ransac_fitness"]))
               for c in group]
-    poses: list[tuple | None] = [None] * len(group)
-    shared = 0.0  # the batched ICP's time, shared evenly by the hypotheses
-    if work.icp_device is not None:
+    if work.scene_device is not None:
+        # The device path: the candidate's hypotheses aligned together, then verified
+        # together; the time is shared evenly by them.
         t0 = time.perf_counter()
         poses = work.icp_many(idents[0], starts)
-        shared = (time.perf_counter() - t0) / len(group)
-    for c, ident, start, pose in zip(group, idents, starts, poses):
-        t0 = time.perf_counter()
-        pose = pose if pose is not None else work.icp(ident, *start)
-        mine.append(work.verified(ident, pose, int(c["n_inliers"]), float(c["inlier_ratio"])))
-        mine[-1]["time_s"] = dt = time.perf_counter() - t0 + shared
-        total += dt
+        mine = work.verified_many(idents, poses, [int(c["n_inliers"]) for c in group],
+                                  [float(c["inlier_ratio"]) for c in group])
+        total = time.perf_counter() - t0
+        for row in mine:
+            row["time_s"] = total / len(mine)
+    else:
+        for c, ident, start in zip(group, idents, starts):
+            t0 = time.perf_counter()
+            mine.append(work.verified(ident, work.icp(ident, *start), int(c["n_inliers"]), float(c["inlier_ratio"])))
+            mine[-1]["time_s"] = dt = time.perf_counter() - t0
+            total += dt
     turned, dt = work.turned_rows(work.best_of(mine), max(r["hyp"] for r in mine) + 1)
     return mine + turned, total + dt
 
@@ -996,6 +1047,12 @@ def refine_by_symmetry(poses: pd.DataFrame, transforms: Mapping[int, np.ndarray]
             image_time[im_id] = image_time.get(im_id, 0.0) + time.perf_counter() - t0
             advance()
     return rows
+
+
+def path_name(device: str | None) -> str:
+    """How a stage's manifest names the path its numeric work took (``runtime``; not
+    keyed): ``numpy``, or ``torch-<device>`` for the torch path on ``device``."""
+    return "numpy" if device is None else f"torch-{device}"
 
 
 def time_table(scene_id: int, image_time: Mapping[int, float]) -> pd.DataFrame:

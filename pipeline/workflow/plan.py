@@ -481,12 +481,14 @@ def encoder_runtime(enc: Any) -> dict[str, Any]:
             "precision": getattr(enc, "precision", None)}
 
 
-def icp_device(run: cfg.RunManifest) -> str | None:
-    """Where refine's ICPs (hypotheses, turns, fine) run for ``run``: ``cuda`` where the
-    run's device is (``cuda``, or ``auto`` with CUDA visible), the batched torch ICP; else
-    None, the numpy ICP one hypothesis at a time, which is the faster on a CPU (20 starts
-    of 1000 scene points against 5000 model points: 0.06 s against 6 s for torch's
-    brute-force neighbours)."""
+def scene_device(run: cfg.RunManifest) -> str | None:
+    """Where the scene side's numeric work runs for ``run`` (register's RANSAC loop and
+    feature matching, refine's ICPs of hypotheses, turns and fine poses and the
+    verification's comparisons): ``cuda`` where
+    the run's device is (``cuda``, or ``auto`` with CUDA visible), the torch paths; else
+    None, the numpy paths, which are the faster on a CPU (20 ICP starts of 1000 scene
+    points against 5000 model points: 0.06 s against 6 s for torch's brute-force
+    neighbours; RANSAC: ``benchmarks/results/scene_paths.md``)."""
     device = _run_device(run)
     if device is None:
         from importlib.metadata import version

@@ -16,10 +16,10 @@ Both compute in float64, with the sums in another order: from starts that conver
 they give the same poses to 1e-7 degrees and the same iteration counts
 (``tests/test_icp_torch.py``, on the CPU). A hypothesis far from any fit wanders, and
 there the rounding grows about 30-fold an iteration along the directions the points
-barely constrain, so the two part after ten or so iterations (on ``synthtiny`` 9 of 73
-hypotheses ended elsewhere), as two BLAS builds would; the choices and the AR are the
-same (0 of 10 candidates chose otherwise, AR 0.8524 both:
-``benchmarks/results/icp_paths_synthtiny.md``).
+barely constrain, so the two part after ten or so iterations (on ``synthtiny`` 9 to 11
+of 73 hypotheses ended elsewhere), as two BLAS builds would; the choices and the AR are
+the same (0 of 10 candidates chose otherwise, AR 0.8524 both:
+``benchmarks/results/scene_paths.md``, which also has ``semilmo``).
 
 Shapes and units: poses are model-to-camera ``R`` (B, 3, 3), ``t`` (B, 3) mm, as BOP's;
 the scene is aligned to the model, as in :mod:`pipeline.method.refinement.icp`.

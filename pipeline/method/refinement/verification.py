@@ -98,6 +98,24 @@ def verify_pose(renderer, key: Hashable, R: np.ndarray, t: np.ndarray, K: np.nda
     ``renderer`` (a :class:`pipeline.method.render.Renderer` of the image's size) in ``window``
     (:func:`verification_window`) of the observed depth (H, W) mm and the candidate's
     mask (H, W) bool; tol mm."""
+    (v,) = verify_poses(renderer, key, [(R, t)], K, depth, mask, window, tol, [evidence])
+    return v
+
+
+def verify_poses(renderer, key: Hashable, poses: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
+                 depth: np.ndarray, mask: np.ndarray, window: tuple[int, int, int, int], tol: float,
+                 evidence: Sequence[float], device: str | None = None) -> list[Verification]:
+    """:func:`verify_pose` of several poses (R (3, 3), t (3,) mm) of one mesh in one
+    window, with their evidence: each rendered, then compared one at a time in numpy
+    (``device`` None) or all together in torch on ``device``
+    (:func:`pipeline.method.refinement.verification_torch.compare_depth_batch`, the same
+    terms to the bit)."""
     x0, y0, w, h = window
-    rendered = renderer.render_depth_crop(key, R, t, K, window)
-    return compare_depth(rendered, depth[y0:y0 + h, x0:x0 + w], mask[y0:y0 + h, x0:x0 + w], tol, evidence)
+    observed, window_mask = depth[y0:y0 + h, x0:x0 + w], mask[y0:y0 + h, x0:x0 + w]
+    rendered = [renderer.render_depth_crop(key, R, t, K, window) for R, t in poses]
+    if device is None:
+        return [compare_depth(r, observed, window_mask, tol, e) for r, e in zip(rendered, evidence)]
+    from pipeline.method.refinement.verification_torch import compare_depth_batch
+
+    return compare_depth_batch(np.stack(rendered) if rendered else np.zeros((0, h, w), np.float32), observed,
+                               window_mask, tol, evidence, device)

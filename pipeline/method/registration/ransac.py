@@ -24,11 +24,14 @@ feature inliers decide (tests/test_hypotheses.py, coherent but wrong matches).
 
 Two backends: ``"numpy"`` (default), batches of ``batch_size`` samples with no Python
 loop over samples (inliers of all a batch's hypotheses as one matrix product,
-:func:`_squared_residuals`), reproducible for a seed by construction (one numpy
+:func:`squared_residuals`), reproducible for a seed by construction (one numpy
 Generator); and ``"open3d"`` (``registration_ransac_based_on_correspondence`` with
 edge-length and distance checkers, seeded through ``o3d.utility.random.seed``; repeated
 runs agreed in our tests, but it is multi-threaded and does not document determinism;
 it gives the winner only). Speed against Open3D: benchmarks/results/coarse_registration.md.
+The numpy backend's loop and the feature matching also run in torch on a run's CUDA
+device (``device=``; :mod:`pipeline.method.registration.ransac_torch`): the same samples
+from the same Generator, the helpers below applied to tensors, the same pool.
 
 Scores are comparable between candidates (e.g. several masks) of one object with the
 same number of scene points: ``n_inliers`` always counts, among the M top-1 scene ->
@@ -40,7 +43,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import open3d as o3d
@@ -108,9 +111,14 @@ class Registration:
     n_correspondences: int
 
 
-def feature_neighbours(query: np.ndarray, reference: np.ndarray, k: int = 1) -> np.ndarray:
+def feature_neighbours(query: np.ndarray, reference: np.ndarray, k: int = 1, device: str | None = None) -> np.ndarray:
     """Indices (Q, k) int64 of the k nearest rows of ``reference`` (R, D) for each row of
-    ``query`` (Q, D), Euclidean distance, nearest first. Exact (brute force in blocks)."""
+    ``query`` (Q, D), Euclidean distance, nearest first. Exact (brute force in blocks).
+    ``device``: None for numpy, else a torch device (:func:`~pipeline.method.registration.ransac_torch.feature_neighbours_torch`)."""
+    if device is not None:
+        from pipeline.method.registration.ransac_torch import feature_neighbours_torch
+
+        return feature_neighbours_torch(query, reference, k, device)
     q = np.asarray(query, dtype=np.float32)
     r = np.asarray(reference, dtype=np.float32)
     if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
@@ -140,16 +148,16 @@ def feature_neighbours(query: np.ndarray, reference: np.ndarray, k: int = 1) -> 
 
 
 def build_correspondences(
-    model_feats: np.ndarray, scene_feats: np.ndarray, params: RansacParams
+    model_feats: np.ndarray, scene_feats: np.ndarray, params: RansacParams, device: str | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC correspondence set ``(C, 2)`` int64 rows ``(model_idx, scene_idx)`` and the
-    top-1 matches ``(M,)`` model index per scene point."""
-    nn = feature_neighbours(scene_feats, model_feats, k=params.knn)
+    top-1 matches ``(M,)`` model index per scene point (matched on ``device``, None: numpy)."""
+    nn = feature_neighbours(scene_feats, model_feats, k=params.knn, device=device)
     top1 = nn[:, 0]
     scene_idx = np.repeat(np.arange(len(scene_feats)), nn.shape[1])
     corr = np.stack([nn.reshape(-1), scene_idx], axis=1)
     if params.mutual:
-        back = feature_neighbours(model_feats, scene_feats, k=1)[:, 0]
+        back = feature_neighbours(model_feats, scene_feats, k=1, device=device)[:, 0]
         mutual = back[top1] == np.arange(len(scene_feats))
         if mutual.sum() >= params.min_mutual:
             corr = np.stack([top1[mutual], np.flatnonzero(mutual)], axis=1)
@@ -186,25 +194,37 @@ def _needed_iterations(inlier_ratio: float, confidence: float, n: int = 3) -> fl
     return math.log(1.0 - confidence) / math.log(1.0 - p)
 
 
+def array_module(a: Any) -> Any:
+    """numpy for a numpy array, torch for a tensor: the helpers below (the triangle fits,
+    the residual expansion) run unchanged on either, so that the torch RANSAC
+    (:mod:`pipeline.method.registration.ransac_torch`) computes what this one computes."""
+    if isinstance(a, np.ndarray):
+        return np
+    import torch
+
+    return torch
+
+
 def _triangle_frames(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Orthonormal frames of B triangles p (B, 3, 3): e1 along the edge p0 -> p1, n the
     normal (p1 - p0) x (p2 - p0), e2 = n x e1, each (B, 3); and a mask (B,) of the
-    triangles that have a normal (not degenerate)."""
+    triangles that have a normal (not degenerate). numpy arrays or torch tensors."""
+    xp = array_module(p)
     u, w = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     n = _cross(u, w)
     nu, nn = _lengths(u), _lengths(n)
     # |u x w| = |u| |w| sin(angle): below 1e-9 the three points are collinear to rounding.
     ok = nn > 1e-9 * nu * _lengths(w)
-    e1 = u / np.where(ok, nu, 1.0)[:, None]
-    n = n / np.where(ok, nn, 1.0)[:, None]
+    e1 = u / xp.where(ok, nu, 1.0)[:, None]
+    n = n / xp.where(ok, nn, 1.0)[:, None]
     return e1, _cross(n, e1), n, ok
 
 
 # np.cross and np.linalg.norm spend most of their time on argument handling for arrays
 # this small (a RANSAC batch's few hundred triangles): these are 1.6-1.8x faster per call.
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (B, 3) arrays."""
-    out = np.empty_like(a)
+    """Row-wise cross product of (B, 3) arrays (or tensors)."""
+    out = array_module(a).empty_like(a)
     out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
@@ -212,8 +232,9 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _lengths(a: np.ndarray) -> np.ndarray:
-    """Euclidean length along the last axis."""
-    return np.sqrt(np.einsum("...i,...i->...", a, a))
+    """Euclidean length along the last axis (arrays or tensors)."""
+    xp = array_module(a)
+    return xp.sqrt(xp.einsum("...i,...i->...", a, a))
 
 
 def fit_triangles(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -225,74 +246,83 @@ def fit_triangles(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndar
     :func:`kabsch` but in closed form, without a batched SVD: centred, three points lie
     in a plane, so the best rotation takes the source plane onto the target plane (its
     normal onto the normal, or onto the opposite normal, whichever fits better) and then
-    turns it in the plane by the 2D Procrustes angle.
+    turns it in the plane by the 2D Procrustes angle. numpy arrays, or torch tensors
+    (the same operations, on their device).
     """
+    xp = array_module(src)
     cs, cd = src.mean(axis=1), dst.mean(axis=1)
     a, b = src - cs[:, None], dst - cd[:, None]
     e1s, e2s, ns, oks = _triangle_frames(src)
     e1d, e2d, nd, okd = _triangle_frames(dst)
     # In-plane coordinates (B, 3) of the centred points in their own triangle's frame.
-    x, y = np.einsum("bki,bi->bk", a, e1s), np.einsum("bki,bi->bk", a, e2s)
-    u, v = np.einsum("bki,bi->bk", b, e1d), np.einsum("bki,bi->bk", b, e2d)
+    x, y = xp.einsum("bki,bi->bk", a, e1s), xp.einsum("bki,bi->bk", a, e2s)
+    u, v = xp.einsum("bki,bi->bk", b, e1d), xp.einsum("bki,bi->bk", b, e2d)
     # sum_k b_k . R a_k = c * C + s * S for a turn by (c, s) = (cos, sin): maximal at
     # (C, S) / hypot(C, S). The mirrored target frame (v -> -v, n -> -n) is also a
     # proper rotation of the source frame onto the target plane.
-    C1, S1 = np.sum(u * x + v * y, axis=1), np.sum(v * x - u * y, axis=1)
-    C2, S2 = np.sum(u * x - v * y, axis=1), np.sum(-v * x - u * y, axis=1)
-    h1, h2 = np.hypot(C1, S1), np.hypot(C2, S2)
+    C1, S1 = xp.sum(u * x + v * y, axis=1), xp.sum(v * x - u * y, axis=1)
+    C2, S2 = xp.sum(u * x - v * y, axis=1), xp.sum(-v * x - u * y, axis=1)
+    h1, h2 = xp.hypot(C1, S1), xp.hypot(C2, S2)
     mirror = h2 > h1
-    sign = np.where(mirror, -1.0, 1.0)
-    C, S, h = np.where(mirror, C2, C1), np.where(mirror, S2, S1), np.maximum(h1, h2)
-    c = np.where(h > 0, C / np.where(h > 0, h, 1.0), 1.0)
-    s = np.where(h > 0, S / np.where(h > 0, h, 1.0), 0.0)
+    sign = xp.where(mirror, -1.0, 1.0)
+    C, S, h = xp.where(mirror, C2, C1), xp.where(mirror, S2, S1), xp.maximum(h1, h2)
+    c = xp.where(h > 0, C / xp.where(h > 0, h, 1.0), 1.0)
+    s = xp.where(h > 0, S / xp.where(h > 0, h, 1.0), 0.0)
     e2d, nd = e2d * sign[:, None], nd * sign[:, None]
     # R = Fd Rz(angle) Fs^T with F = [e1 e2 n] as columns, written out.
     outer = lambda p, q: p[:, :, None] * q[:, None, :]  # noqa: E731
     R = (c[:, None, None] * (outer(e1d, e1s) + outer(e2d, e2s))
          + s[:, None, None] * (outer(e2d, e1s) - outer(e1d, e2s)) + outer(nd, ns))
-    t = cd - np.einsum("bij,bj->bi", R, cs)
+    t = cd - xp.einsum("bij,bj->bi", R, cs)
     # Residuals in the plane: (u, +-v) against the turned (x, y); both triangles are flat.
     vs = v * sign[:, None]
     res2 = (u - (c[:, None] * x - s[:, None] * y)) ** 2 + (vs - (s[:, None] * x + c[:, None] * y)) ** 2
-    return R, t, np.sqrt(np.max(res2, axis=1)), oks & okd
+    return R, t, xp.sqrt(xp.amax(res2, axis=1)), oks & okd
 
 
-def _score_terms(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(17, C) per-correspondence terms of |R s + t - d|^2 for :func:`_squared_residuals`."""
+def score_terms(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(17, C) per-correspondence terms of |R s + t - d|^2 for :func:`squared_residuals`,
+    of src, dst (C, 3) float64 arrays or tensors."""
+    xp = array_module(src)
     sd = (dst[:, :, None] * src[:, None, :]).reshape(-1, 9)  # d_i s_j, row-major (i, j)
-    one = np.ones((len(src), 1))
-    sq = np.sum(src * src, axis=1, keepdims=True) + np.sum(dst * dst, axis=1, keepdims=True)
-    return np.ascontiguousarray(np.concatenate([sd, src, dst, one, sq], axis=1).T)
+    sq = xp.sum(src * src, axis=1) + xp.sum(dst * dst, axis=1)
+    one = np.ones(len(src)) if xp is np else src.new_ones(len(src))
+    terms = xp.concatenate([sd, src, dst, one[:, None], sq[:, None]], axis=1).T
+    return np.ascontiguousarray(terms) if xp is np else terms.contiguous()
 
 
-def _squared_residuals(R: np.ndarray, t: np.ndarray, terms: np.ndarray) -> np.ndarray:
+def squared_residuals(R: np.ndarray, t: np.ndarray, terms: np.ndarray) -> np.ndarray:
     """|R_b s_c + t_b - d_c|^2 (B, C) of B transforms R (B, 3, 3), t (B, 3) over the
-    correspondences of ``terms`` (:func:`_score_terms`), as one matrix product:
+    correspondences of ``terms`` (:func:`score_terms`), as one matrix product (arrays or
+    tensors):
     |s|^2 + |d|^2 + |t|^2 + 2 (R^T t).s - 2 t.d - 2 sum_ij R_ij d_i s_j.
     The coordinates should be centred (small magnitudes) for the expansion to stay
     accurate; in float64 at object scale its error is far below a threshold squared."""
+    xp = array_module(R)
     B = len(R)
-    coef = np.empty((B, 17))
+    coef = np.empty((B, 17)) if xp is np else R.new_empty((B, 17))
     coef[:, :9] = -2.0 * R.reshape(B, 9)
-    coef[:, 9:12] = 2.0 * np.einsum("bji,bj->bi", R, t)
+    coef[:, 9:12] = 2.0 * xp.einsum("bji,bj->bi", R, t)
     coef[:, 12:15] = -2.0 * t
-    coef[:, 15] = np.sum(t * t, axis=1)
+    coef[:, 15] = xp.sum(t * t, axis=1)
     coef[:, 16] = 1.0
     # einsum, not BLAS: a product this small ran 100x slower with 2 OpenBLAS threads on
     # busy cores (22 ms vs 0.2 ms) and gains nothing from threads on idle ones.
-    return np.einsum("bk,kc->bc", coef, terms)
+    return xp.einsum("bk,kc->bc", coef, terms)
 
 
-def _edge_lengths(points_t: np.ndarray, idx_t: np.ndarray) -> np.ndarray:
+def edge_lengths(points_t: np.ndarray, idx_t: np.ndarray) -> np.ndarray:
     """Lengths (3, B) mm of the edges p0-p1, p1-p2, p2-p0 of B triangles whose vertices
     are the points ``points_t`` (3, C) (coordinate-major) at ``idx_t`` (3, B). One
     gather and a few operations on whole (3, 3, B) arrays: for a RANSAC batch of 1000
     samples 3x faster than gathering (B, 3, 3) triangles and measuring their edges,
     where numpy's per-call overhead dominated (the same lengths to the bit)."""
-    p = points_t.take(idx_t, axis=1)  # (coordinate, vertex, triangle)
+    xp = array_module(points_t)
+    # (coordinate, vertex, triangle); take is numpy's faster gather, indexing torch's
+    p = points_t.take(idx_t, axis=1) if xp is np else points_t[:, idx_t]
     d = p - p[:, (1, 2, 0)]
     d *= d
-    return np.sqrt(d[0] + d[1] + d[2])
+    return xp.sqrt(d[0] + d[1] + d[2])
 
 
 def _ransac_numpy(
@@ -309,14 +339,14 @@ def _ransac_numpy(
     those that do not bring their own three points within ``thr`` (Open3D's distance
     checker: such a pose cannot be the one that explains the sample), and count the
     inliers of the rest over all C correspondences with one matrix product
-    (:func:`_squared_residuals`).
+    (:func:`squared_residuals`).
     """
     C = len(src)
     # Centre both sides: the residual expansion then works on small numbers; poses are
     # mapped back at the end (t = t_c + md - R ms).
     ms, md = src.mean(axis=0), dst.mean(axis=0)
     src, dst = src - ms, dst - md
-    terms = _score_terms(src, dst)
+    terms = score_terms(src, dst)
     # The pool: the best hypotheses so far, with the index of their sample (tie-break).
     p_count = np.full(1, -1, dtype=np.int64)
     p_order = np.zeros(1, dtype=np.int64)
@@ -331,7 +361,7 @@ def _ransac_numpy(
         done += B
         idx = rng.integers(0, C, size=(B, 3))
         idx_t = np.ascontiguousarray(idx.T)
-        ls, ld = _edge_lengths(src_t, idx_t), _edge_lengths(dst_t, idx_t)  # (3, B) each
+        ls, ld = edge_lengths(src_t, idx_t), edge_lengths(dst_t, idx_t)  # (3, B) each
         ok = np.all((ls >= ratio * ld) & (ld >= ratio * ls) & (ls > 0), axis=0)
         if not ok.any():
             continue
@@ -342,7 +372,7 @@ def _ransac_numpy(
         if not ok.any():
             continue
         R, t, sample = R[ok], t[ok], sample[ok]
-        counts = np.count_nonzero(_squared_residuals(R, t, terms) < thr2, axis=1)
+        counts = np.count_nonzero(squared_residuals(R, t, terms) < thr2, axis=1)
         p_count = np.concatenate([p_count, counts])
         p_order = np.concatenate([p_order, first + sample])
         p_R, p_t = np.concatenate([p_R, R]), np.concatenate([p_t, t])
@@ -426,10 +456,11 @@ def ransac_align(
     *,
     params: RansacParams | None = None,
     seed: int = 0,
+    device: str | None = None,
 ) -> Registration:
     """Coarse model-to-camera pose from feature matches: the best of :func:`ransac_hypotheses`."""
     return ransac_hypotheses(model_points, model_feats, scene_points, scene_feats, diameter, params=params,
-                             seed=seed, k=1)[0]
+                             seed=seed, k=1, device=device)[0]
 
 
 def ransac_hypotheses(
@@ -444,6 +475,7 @@ def ransac_hypotheses(
     k: int = 1,
     nms_deg: float = 30.0,
     nms_frac: float = 0.2,
+    device: str | None = None,
 ) -> list[Registration]:
     """Up to ``k`` distinct coarse model-to-camera poses from feature matches, best first.
 
@@ -457,6 +489,12 @@ def ransac_hypotheses(
     highest fitness + inlier ratio returned, best first, so the first is the same for
     every k up to ``final_candidates`` (:func:`ransac_align` is k = 1). Deterministic for
     a given seed (numpy backend); the open3d backend gives the winner only.
+
+    ``device``: None, the numpy backend's sampling loop and feature matching on the CPU;
+    or a torch device (``cuda``) for both
+    (:mod:`~pipeline.method.registration.ransac_torch`: the same samples, checks and
+    pool, the batches evaluated several at once). The ranking and refits after the loop
+    (a few dozen poses, one k-d tree) stay in numpy either way.
     """
     params = params or RansacParams()
     mp = np.asarray(model_points, dtype=np.float64).reshape(-1, 3)
@@ -469,16 +507,26 @@ def ransac_hypotheses(
     if len(sp) < 3 or len(mp) < 3:
         raise ValueError("ransac_align: need at least 3 model and 3 scene points")
     thr = params.inlier_frac * float(diameter)
-    corr, top1 = build_correspondences(model_feats, scene_feats, params)
+    if device is not None and params.backend != "numpy":
+        raise ValueError(f"ransac_hypotheses: device={device!r} needs the numpy backend's loop, not {params.backend!r}")
+    corr, top1 = build_correspondences(model_feats, scene_feats, params, device)
     src, dst = mp[corr[:, 0]], sp[corr[:, 1]]
     tree = cKDTree(mp)
     if params.backend == "numpy":
         rng = np.random.default_rng(seed)
+        if device is None:
+            loop = _ransac_numpy
+        else:
+            from functools import partial
+
+            from pipeline.method.registration.ransac_torch import ransac_pool_torch
+
+            loop = partial(ransac_pool_torch, device=device)
         if params.rank_by == "fitness":
-            found = _ransac_numpy(src, dst, thr, params, rng, pool=max(params.rescore_pool, k))
+            found = loop(src, dst, thr, params, rng, pool=max(params.rescore_pool, k))
             found = [found[i] for i in _rank_by_fitness(found, len(corr), tree, sp, thr, params.fitness_points)]
         else:
-            found = _ransac_numpy(src, dst, thr, params, rng, pool=64 * k if k > 1 else 1)
+            found = loop(src, dst, thr, params, rng, pool=64 * k if k > 1 else 1)
         n = max(k, params.final_candidates) if params.rank_by == "fitness" else k
         found = [found[i] for i in distinct_poses([(R, t) for _, R, t in found], n, nms_deg, nms_frac * diameter)]
     else:

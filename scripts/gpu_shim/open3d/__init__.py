@@ -6,8 +6,9 @@ Why: the GPU machine has no network, and what reaches it is limited to 64 MiB, w
 open3d-cpu's wheel is 100 MB (61 MB even as tar.xz). With GeDi + DINOv2 the pipeline
 calls open3d only for point-cloud housekeeping on the CPU: normal estimation, DBSCAN
 and statistical outlier removal of lifted depth points, and the optional open3d RANSAC
-backend and FPFH encoder (not used by that configuration). This module computes the
-first three with scipy, as open3d defines them:
+backend (not used there). The check also runs the default encoders' stand-ins, whose
+geometric encoder is open3d's FPFH. This module computes those four with numpy and
+scipy, as open3d defines them:
 
 - ``PointCloud.estimate_normals(KDTreeSearchParamHybrid(radius, max_nn))``: the
   eigenvector of the smallest eigenvalue of the covariance of the (at most ``max_nn``)
@@ -23,6 +24,15 @@ first three with scipy, as open3d defines them:
   distance to its ``nb_neighbors`` nearest points (itself included, as open3d's KNN
   search returns it), kept when positive and below mean + std_ratio x std (Bessel's
   sample std) of the positive means.
+- ``pipelines.registration.compute_fpfh_feature(pcd, search)`` (radius or hybrid search):
+  Rusu's FPFH as open3d computes it. A point's neighbours are those of the search
+  without its nearest (itself); each (point, neighbour) pair gives the three angles of
+  the Darboux frame, taken from the end whose normal is more nearly perpendicular to the
+  line between them (the pair features are zero when the points coincide or the line is
+  parallel to that normal), binned in 11 bins each, with 100 / (neighbours) a pair: the
+  SPFH (33 values). The FPFH is the SPFH plus the neighbours' SPFH weighted by 1 /
+  squared distance, each third scaled to sum to 100. The sums run in another order than
+  open3d's, so values agree to rounding.
 
 ``tests/test_gpu_shim.py`` compares each with open3d on the same clouds. Any other
 open3d name raises ``NotImplementedError`` naming it, so the check cannot silently use
@@ -154,6 +164,122 @@ class PointCloud:
         return PointCloud(pts[keep]), keep.tolist()
 
 
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of (P, 3) arrays, summed left to right as open3d's Eigen
+    does: in another order, pairs whose line runs along both normals (|cos| near 1 at
+    both ends) can take the other end's frame, and their third feature lands at the
+    other end of the histogram (seen on a noisy sheet, tests/test_gpu_shim.py)."""
+    return (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]) + a[:, 2] * b[:, 2]
+
+
+def _pair_bins(p: np.ndarray, n: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """The three histogram bins (P, 3) int, 0-10, of the pair features of the pairs
+    (i, j) of points p (N, 3) with normals n (N, 3)."""
+    d = p[j] - p[i]
+    length = np.sqrt(_dot(d, d))
+    safe = np.where(length > 0, length, 1.0)
+    a1 = _dot(n[i], d) / safe
+    a2 = _dot(n[j], d) / safe
+    # open3d compares acos(|a1|) > acos(|a2|): the same as |a1| < |a2|, acos falling
+    # (where two cosines a last bit apart meet one acos value, open3d's build turned out
+    # to swap, as this does, where the C library's acos would not)
+    swap = np.abs(a1) < np.abs(a2)
+    n1 = np.where(swap[:, None], n[j], n[i])
+    n2 = np.where(swap[:, None], n[i], n[j])
+    d = np.where(swap[:, None], -d, d)
+    f2 = np.where(swap, -a2, a1)
+    v = np.cross(d, n1)
+    v_norm = np.sqrt(_dot(v, v))
+    v = v / np.where(v_norm > 0, v_norm, 1.0)[:, None]
+    w = np.cross(n1, v)
+    f1 = _dot(v, n2)
+    f0 = np.arctan2(_dot(w, n2), _dot(n1, n2))
+    zero = (length == 0) | (v_norm == 0)
+    f = np.where(zero[:, None], 0.0, np.stack([f0, f1, f2], axis=1))
+    bins = np.floor(np.column_stack([11 * (f[:, 0] + np.pi) / (2 * np.pi), 11 * (f[:, 1] + 1.0) * 0.5,
+                                     11 * (f[:, 2] + 1.0) * 0.5]))
+    return np.clip(bins, 0, 10).astype(np.int64)
+
+
+def _neighbour_pairs(p: np.ndarray, search) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's neighbours by ``search`` without its nearest (itself): pairs i, j
+    (P,), their squared distances (P,), and each point's count with itself (N,)."""
+    from scipy.spatial import cKDTree
+
+    tree, N = cKDTree(p), len(p)
+    if search.max_nn is None:  # every point within the radius, nearest first
+        lists = tree.query_ball_point(p, search.radius, return_sorted=False)
+        count = np.array([len(x) for x in lists], dtype=np.int64)
+        i = np.repeat(np.arange(N), count)
+        j = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists]) if N else np.zeros(0, np.int64)
+        d2 = np.einsum("pk,pk->p", p[j] - p[i], p[j] - p[i])
+        order = np.lexsort((d2, i))
+        i, j, d2 = i[order], j[order], d2[order]
+    else:  # the max_nn nearest within the radius
+        k = min(int(search.max_nn), N)
+        dist, idx = tree.query(p, k=k, distance_upper_bound=search.radius)
+        dist, idx = np.reshape(dist, (N, k)), np.reshape(idx, (N, k))
+        valid = np.isfinite(dist)
+        count = valid.sum(1)
+        i = np.repeat(np.arange(N), k).reshape(N, k)[valid]
+        j, d2 = idx[valid], dist[valid] ** 2
+    first = np.concatenate([[0], np.cumsum(count)[:-1]]) if N else np.zeros(0, np.int64)
+    keep = np.ones(len(i), bool)
+    keep[first[count > 0]] = False  # each point's nearest, itself
+    return i[keep], j[keep], d2[keep], count
+
+
+class _Feature:
+    """``compute_fpfh_feature``'s result: ``data`` (33, N) float64."""
+
+    def __init__(self, data: np.ndarray) -> None:
+        self.data = data
+
+    def dimension(self) -> int:
+        return int(self.data.shape[0])
+
+    def num(self) -> int:
+        return int(self.data.shape[1])
+
+
+def compute_fpfh_feature(pcd: PointCloud, search) -> _Feature:
+    """open3d.pipelines.registration.compute_fpfh_feature (see the module docstring)."""
+    from scipy.sparse import csr_matrix
+
+    p, n = pcd.points, pcd.normals
+    if len(n) != len(p):
+        raise ValueError("open3d stand-in: compute_fpfh_feature needs normals")
+    N = len(p)
+    i, j, d2, count = _neighbour_pairs(p, search)
+    incr = 100.0 / np.maximum(count - 1, 1)
+    bins = _pair_bins(p, n, i, j) + np.array([0, 11, 22])
+    spfh = np.zeros(N * 33)
+    for col in range(3):
+        spfh += np.bincount(i * 33 + bins[:, col], weights=incr[i], minlength=N * 33)
+    spfh = spfh.reshape(N, 33)
+    near = d2 > 0
+    weights = csr_matrix((1.0 / d2[near], (i[near], j[near])), shape=(N, N))
+    acc = weights @ spfh
+    sums = acc.reshape(N, 3, 11).sum(axis=2)
+    scale = np.where(sums != 0, 100.0 / np.where(sums != 0, sums, 1.0), 0.0)
+    fpfh = (acc.reshape(N, 3, 11) * scale[:, :, None]).reshape(N, 33) + spfh
+    fpfh[count <= 1] = 0.0
+    return _Feature(fpfh.T.copy())
+
+
+class _Registration(_Missing):
+    def __init__(self) -> None:
+        super().__init__("pipelines.registration")
+
+    compute_fpfh_feature = staticmethod(compute_fpfh_feature)
+
+
+class _Pipelines(_Missing):
+    def __init__(self) -> None:
+        super().__init__("pipelines")
+        self.registration = _Registration()
+
+
 class _Geometry(_Missing):
     PointCloud = PointCloud
     KDTreeSearchParamHybrid = KDTreeSearchParamHybrid
@@ -165,6 +291,6 @@ class _Geometry(_Missing):
 
 utility = _Utility()
 geometry = _Geometry()
-pipelines = _Missing("pipelines")
+pipelines = _Pipelines()
 core = _Missing("core")
 t = _Missing("t")
