@@ -79,7 +79,7 @@ else
 fi
 if ! "$PY" -c 'import open3d' 2>/dev/null; then
   export PYTHONPATH="$ROOT/scripts/gpu_shim:${PYTHONPATH:-$ROOT}"
-  ENV_NOTE="$ENV_NOTE; open3d absent: scripts/gpu_shim/open3d stands in for its normals, DBSCAN, outlier removal and FPFH (CPU; its FPFH 3-6x slower than open3d's)"
+  ENV_NOTE="$ENV_NOTE; open3d absent: scripts/gpu_shim/open3d stands in for its normals, DBSCAN, outlier removal and FPFH (CPU; its FPFH about 3-4x slower than open3d's)"
 fi
 NV_EGL=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 if [ -f "$NV_EGL" ] && [ -z "${__EGL_VENDOR_LIBRARY_FILENAMES:-}" ]; then export __EGL_VENDOR_LIBRARY_FILENAMES="$NV_EGL"; fi

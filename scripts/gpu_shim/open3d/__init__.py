@@ -26,7 +26,7 @@ scipy, as open3d defines them:
   sample std) of the positive means.
 - ``pipelines.registration.compute_fpfh_feature(pcd, search)`` (radius or hybrid search):
   Rusu's FPFH as open3d computes it. A point's neighbours are those of the search
-  without its nearest (itself); each (point, neighbour) pair gives the three angles of
+  without itself; each (point, neighbour) pair gives the three angles of
   the Darboux frame, taken from the end whose normal is more nearly perpendicular to the
   line between them (the pair features are zero when the points coincide or the line is
   parallel to that normal), binned in 11 bins each, with 100 / (neighbours) a pair: the
@@ -172,61 +172,73 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]) + a[:, 2] * b[:, 2]
 
 
-def _pair_bins(p: np.ndarray, n: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """The three histogram bins (P, 3) int, 0-10, of the pair features of the pairs
-    (i, j) of points p (N, 3) with normals n (N, 3)."""
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (P, 3) arrays, as Eigen writes them out (np.cross's
+    argument handling costs more than the products at a few million rows)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
+
+
+def _pair_bins(p: np.ndarray, n: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The histogram bins (P, 3) int64 (0-10, 11-21, 22-32) of the pair features of the
+    pairs (i, j) of points p (N, 3) with normals n (N, 3), and the pairs' squared
+    distances (P,)."""
     d = p[j] - p[i]
-    length = np.sqrt(_dot(d, d))
+    d2 = _dot(d, d)
+    length = np.sqrt(d2)
     safe = np.where(length > 0, length, 1.0)
-    a1 = _dot(n[i], d) / safe
-    a2 = _dot(n[j], d) / safe
+    ni, nj = n[i], n[j]
+    a1 = _dot(ni, d) / safe
+    a2 = _dot(nj, d) / safe
     # open3d compares acos(|a1|) > acos(|a2|): the same as |a1| < |a2|, acos falling
     # (where two cosines a last bit apart meet one acos value, open3d's build turned out
     # to swap, as this does, where the C library's acos would not)
     swap = np.abs(a1) < np.abs(a2)
-    n1 = np.where(swap[:, None], n[j], n[i])
-    n2 = np.where(swap[:, None], n[i], n[j])
-    d = np.where(swap[:, None], -d, d)
+    n1 = np.where(swap[:, None], nj, ni)
+    n2 = np.where(swap[:, None], ni, nj)
+    d[swap] *= -1.0
     f2 = np.where(swap, -a2, a1)
-    v = np.cross(d, n1)
+    v = _cross(d, n1)
     v_norm = np.sqrt(_dot(v, v))
-    v = v / np.where(v_norm > 0, v_norm, 1.0)[:, None]
-    w = np.cross(n1, v)
+    v /= np.where(v_norm > 0, v_norm, 1.0)[:, None]
+    w = _cross(n1, v)
     f1 = _dot(v, n2)
     f0 = np.arctan2(_dot(w, n2), _dot(n1, n2))
     zero = (length == 0) | (v_norm == 0)
-    f = np.where(zero[:, None], 0.0, np.stack([f0, f1, f2], axis=1))
-    bins = np.floor(np.column_stack([11 * (f[:, 0] + np.pi) / (2 * np.pi), 11 * (f[:, 1] + 1.0) * 0.5,
-                                     11 * (f[:, 2] + 1.0) * 0.5]))
-    return np.clip(bins, 0, 10).astype(np.int64)
+    bins = np.empty((len(d), 3), np.int64)
+    for col, (f, lo, width) in enumerate(((f0, -np.pi, 2 * np.pi), (f1, -1.0, 2.0), (f2, -1.0, 2.0))):
+        f = np.where(zero, 0.0, f)
+        # open3d's own expressions, so that a feature on a bin's edge falls as there
+        b = np.floor(11 * (f + np.pi) / (2.0 * np.pi)) if col == 0 else np.floor(11 * (f + 1.0) * 0.5)
+        bins[:, col] = np.clip(b, 0, 10).astype(np.int64) + 11 * col
+    return bins, d2
 
 
-def _neighbour_pairs(p: np.ndarray, search) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each point's neighbours by ``search`` without its nearest (itself): pairs i, j
-    (P,), their squared distances (P,), and each point's count with itself (N,)."""
+PAIR_CHUNK = 1 << 18
+"""Pairs evaluated per task of :func:`compute_fpfh_feature`'s thread pool (numpy releases
+the GIL over arrays this long, so the chunks run on every core, as open3d's OpenMP loop
+does)."""
+
+
+def _neighbour_pairs(p: np.ndarray, search) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's neighbours by ``search`` without itself: pairs i, j (P,), and each
+    point's count with itself (N,)."""
     from scipy.spatial import cKDTree
 
     tree, N = cKDTree(p), len(p)
-    if search.max_nn is None:  # every point within the radius, nearest first
-        lists = tree.query_ball_point(p, search.radius, return_sorted=False)
-        count = np.array([len(x) for x in lists], dtype=np.int64)
-        i = np.repeat(np.arange(N), count)
-        j = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists]) if N else np.zeros(0, np.int64)
-        d2 = np.einsum("pk,pk->p", p[j] - p[i], p[j] - p[i])
-        order = np.lexsort((d2, i))
-        i, j, d2 = i[order], j[order], d2[order]
-    else:  # the max_nn nearest within the radius
-        k = min(int(search.max_nn), N)
-        dist, idx = tree.query(p, k=k, distance_upper_bound=search.radius)
-        dist, idx = np.reshape(dist, (N, k)), np.reshape(idx, (N, k))
-        valid = np.isfinite(dist)
-        count = valid.sum(1)
-        i = np.repeat(np.arange(N), k).reshape(N, k)[valid]
-        j, d2 = idx[valid], dist[valid] ** 2
-    first = np.concatenate([[0], np.cumsum(count)[:-1]]) if N else np.zeros(0, np.int64)
-    keep = np.ones(len(i), bool)
-    keep[first[count > 0]] = False  # each point's nearest, itself
-    return i[keep], j[keep], d2[keep], count
+    if search.max_nn is None:  # every point within the radius, both ways
+        pairs = tree.query_pairs(search.radius, output_type="ndarray")
+        i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.int64)
+        j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
+        return i, j, np.bincount(i, minlength=N) + 1
+    k = min(int(search.max_nn), N)  # the max_nn nearest within the radius, the first itself
+    dist, idx = tree.query(p, k=k, distance_upper_bound=search.radius)
+    dist, idx = np.reshape(dist, (N, k)), np.reshape(idx, (N, k))
+    valid = np.isfinite(dist)
+    count = valid.sum(1)
+    valid[:, 0] = False
+    i = np.repeat(np.arange(N), k).reshape(N, k)[valid]
+    return i, idx[valid].astype(np.int64), count
 
 
 class _Feature:
@@ -244,27 +256,31 @@ class _Feature:
 
 def compute_fpfh_feature(pcd: PointCloud, search) -> _Feature:
     """open3d.pipelines.registration.compute_fpfh_feature (see the module docstring)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
     from scipy.sparse import csr_matrix
 
     p, n = pcd.points, pcd.normals
     if len(n) != len(p):
         raise ValueError("open3d stand-in: compute_fpfh_feature needs normals")
     N = len(p)
-    i, j, d2, count = _neighbour_pairs(p, search)
-    incr = 100.0 / np.maximum(count - 1, 1)
-    bins = _pair_bins(p, n, i, j) + np.array([0, 11, 22])
-    spfh = np.zeros(N * 33)
-    for col in range(3):
-        spfh += np.bincount(i * 33 + bins[:, col], weights=incr[i], minlength=N * 33)
-    spfh = spfh.reshape(N, 33)
+    i, j, count = _neighbour_pairs(p, search)
+    chunks = [slice(s, s + PAIR_CHUNK) for s in range(0, len(i), PAIR_CHUNK)]
+    with ThreadPoolExecutor(max_workers=min(len(chunks), os.cpu_count() or 1) or 1) as pool:
+        done = list(pool.map(lambda c: _pair_bins(p, n, i[c], j[c]), chunks))
+    bins = np.concatenate([b for b, _ in done]) if done else np.zeros((0, 3), np.int64)
+    d2 = np.concatenate([x for _, x in done]) if done else np.zeros(0)
+    incr = (100.0 / np.maximum(count - 1, 1))[i]
+    spfh = sum(np.bincount(i * 33 + bins[:, col], weights=incr, minlength=N * 33) for col in range(3))
+    spfh = np.reshape(spfh, (N, 33)) if N else np.zeros((0, 33))
     near = d2 > 0
-    weights = csr_matrix((1.0 / d2[near], (i[near], j[near])), shape=(N, N))
-    acc = weights @ spfh
+    acc = csr_matrix((1.0 / d2[near], (i[near], j[near])), shape=(N, N)) @ spfh
     sums = acc.reshape(N, 3, 11).sum(axis=2)
     scale = np.where(sums != 0, 100.0 / np.where(sums != 0, sums, 1.0), 0.0)
     fpfh = (acc.reshape(N, 3, 11) * scale[:, :, None]).reshape(N, 33) + spfh
     fpfh[count <= 1] = 0.0
-    return _Feature(fpfh.T.copy())
+    return _Feature(np.ascontiguousarray(fpfh.T))
 
 
 class _Registration(_Missing):
