@@ -9,7 +9,7 @@ the default run; e.g. ``FREEZE_CACHE=DIR snakemake --cores 2 bop_all --config
 datasets=synthmini``). Each repeat runs, for each configuration in turn (so that all
 see the same machine load), the stages ``register`` and ``refine`` on the first
 ``--scenes`` scene items, refine's ``all`` item and ``score``, in this process through
-``stages.run_stage``, as ``freeze stage`` runs them:
+``run_stage``, as ``freeze stage`` runs them:
 
 - ``serial``: the default, one candidate (image) after the other in the job's thread;
 - ``threads``: dask's threaded scheduler on ``--threads`` threads (the stages'
@@ -121,7 +121,7 @@ def main() -> None:
     from pipeline.evaluation.metrics import score_results_file
     from pipeline.common.parallel import job_mapper
     from pipeline.workflow.plan import RunPlan
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     modules = (stages.register, stages.refine, stages.score)
     t0 = time.perf_counter()

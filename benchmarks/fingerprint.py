@@ -34,7 +34,7 @@ def main() -> None:
     from pipeline.common import config as cfg
     from pipeline.common.file_hashes import files_under
     from pipeline.workflow.plan import RunPlan
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     plan = RunPlan(cfg.load_run({"datasets": args.dataset}))[args.dataset]
     if not plan["synth"].manifest("dataset").exists():

@@ -53,7 +53,7 @@ def dataset_root(name: str) -> Path:
     """The built semi-real dataset ``name`` (the synth stage is run here if needed)."""
     from pipeline.common import config as cfg
     from pipeline.workflow.plan import RunPlan
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     rp = RunPlan(cfg.load_run({"datasets": name}))
     ok, why = rp.available(name)

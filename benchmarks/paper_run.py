@@ -4,7 +4,7 @@
         [--cache DIR] [--geometric gedi] [--visual dinov2-vitg14] [--out report.md]
 
 Every stage of ``bop_all`` runs for every item of the dataset, in the stage graph's
-order, in this process (``stages.run_stage``, as ``freeze stage`` and ``freeze estimate``
+order, in this process (``run_stage``, as ``freeze stage`` and ``freeze estimate``
 run them), so that a machine without Snakemake can run it: ``scripts/gpu_check.sh``
 runs it on a bare GPU machine. Each stage's wall time is summed over its items;
 ``torch.cuda.synchronize`` closes each item on CUDA. Weights: the weights folder
@@ -87,7 +87,7 @@ def run(dataset: str, geometric: str, visual: str, device: str, weights: Path, c
     from pipeline.common.config import load_run
     from pipeline.workflow.plan import RunPlan, build_encoders, encoder_runtime
     from pipeline.workflow.stage_graph import STAGES
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     config = {"datasets": dataset, "geometric": geometric, "visual": visual, "device": device,
               "weights_dir": str(weights)}

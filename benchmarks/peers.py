@@ -6,7 +6,7 @@ masked depth the project gets, scored by the project's own scorer.
         [--peers ppf,fpfh] [--images N] [--out benchmarks/results/peers] [--set fpfh.voxel=0.03]
 
 For each dataset the project's ``synth`` (when the dataset has one) and ``segment_prior``
-artifacts are made if missing (``stages.run_stage``); the candidates are segment_prior's
+artifacts are made if missing (``run_stage``); the candidates are segment_prior's
 ``prior_candidates.parquet`` (one per kept prior detection, with its mask and score), and
 each candidate's points are lifted from the masked depth by the project's own function
 (:func:`pipeline.method.scene_side.candidate_points`: valid depth under the mask, camera
@@ -235,7 +235,7 @@ def dataset_plan(name: str, prior: str | None = None, cache: Path | None = None)
 def ensure_artifacts(plan, progress: bool = True) -> None:
     """Make the dataset (``synth``, where the dataset has that stage) and ``segment_prior``
     artifacts of ``plan`` when they are not in the cache."""
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     if "synth" in plan.stages and not plan["synth"].manifest("dataset").exists():
         run_stage(plan, "synth", "dataset", progress=progress)

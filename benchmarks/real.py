@@ -45,7 +45,7 @@ def tyol_frame():
     ../shared is absent."""
     from pipeline.common import config as cfg
     from pipeline.workflow.plan import RunPlan
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     rp = RunPlan(cfg.load_run({"datasets": "tyol"}))
     ok, why = rp.available("tyol")

@@ -186,7 +186,7 @@ def stages_on_the_other_path(dataset: str, config: dict[str, str], device: str) 
     from pipeline.common.config import load_run
     from pipeline.method.geometry.transforms import rotation_angle_deg
     from pipeline.workflow.plan import RunPlan
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     run_plan = RunPlan(load_run({"datasets": dataset, **config}))
     source = run_plan[dataset]

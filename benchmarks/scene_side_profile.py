@@ -134,7 +134,10 @@ def measure(dataset: str, config: dict[str, str], repeat: int) -> dict[str, Any]
     """Run the scene-side stages of every scene item ``repeat`` times in this process;
     returns per run the exclusive seconds per part and the stages' totals, and the
     number of targets."""
-    import stages
+    try:
+        from pipeline.workflow.stage_graph import run_stage
+    except ImportError:  # a tree from before run_stage moved into the workflow layer (--trees)
+        from stages import run_stage
     from pipeline.common.config import load_run
     from pipeline.workflow.plan import RunPlan
     from pipeline.workflow.stage_graph import STAGES
@@ -153,7 +156,7 @@ def measure(dataset: str, config: dict[str, str], repeat: int) -> dict[str, Any]
                 clock.stage = stage
                 use_threads(STAGES[stage].threads)  # as Snakemake's job of that stage would
                 t0 = time.perf_counter()
-                stages.run_stage(plan, stage, item, progress=False)
+                run_stage(plan, stage, item, progress=False)
                 totals[stage] += time.perf_counter() - t0
         parts = dict(clock.seconds)
         for stage in SCENE_STAGES:

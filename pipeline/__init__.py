@@ -23,6 +23,8 @@ every import, so a new module is checked the day it is added):
  6    ``pipeline.commands``  the ``freeze`` command line, one module per command group
 ====  =====================  ==========================================================
 
-The stage runners (``stages/``) sit between the workflow and the commands: each reads
-its inputs through the plan, calls one function of the method and publishes.
+The stage runners (``stages/``) sit above the library: each reads its inputs through
+the plan, calls one function of the method and publishes. No module here imports them;
+``pipeline.workflow.stage_graph.run_stage`` runs one by the module name its declaration
+gives.
 """

@@ -54,7 +54,7 @@ def _rerun(work: Path, dest: Path, **overrides: str) -> Path:
     plan = RunPlan(cfg.load_run({"datasets": "synthtiny", **overrides}), cache=dest / "cache")["synthtiny"]
     for stage in STAGES:
         shutil.rmtree(plan[stage].dir)
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     for stage in STAGES:
         for item in (plan.scene_items if stage in ("register", "refine") else []) + (

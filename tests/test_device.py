@@ -231,7 +231,7 @@ def test_keys_are_the_same_on_every_device_at_the_same_precision(weights, tiny_v
 def test_stage_manifests_record_device_and_precision(weights, tiny_vits14, tmp_path):
     """model_features and scene_features record where their encoders ran, refine where
     SAR's visual encoder, the ICP and the verification ran, register where RANSAC ran (synthtiny with small stage parameters, GeDi at one radius)."""
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     data = _run(weights, geometric="gedi-r03", device="cpu").model_dump()
     data["stages"]["render_templates"].update(n_views=4, image_size=64)

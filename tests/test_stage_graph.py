@@ -251,7 +251,7 @@ def test_every_stage_opens_only_what_it_declares(tiny_run, tmp_path, monkeypatch
     """Re-run one job of every stage on a copy of the main synthtiny run, recording every
     file each opens; each must be in its own output or in a declared read."""
     import pipeline.common.store as store
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     work, _ = tiny_run
     cache = tmp_path / "cache"

@@ -48,7 +48,7 @@ def stage(
     """Run one stage for one item (what each Snakemake job calls)."""
     from pipeline.common import store
     from pipeline.workflow.plan import plan_from_json
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     if threads:
         from pipeline.common.threads import use_threads

@@ -453,6 +453,18 @@ def code_version(stage: str) -> int:
     return spec(stage).code_version
 
 
+def run_stage(plan: Any, stage: str, item: str, progress: bool = True) -> None:
+    """Run ``stage`` for ``item`` of the dataset plan ``plan`` (what ``freeze stage``,
+    every Snakemake job and ``freeze estimate`` call): the ``run(plan, item)`` of the
+    module its declaration names (:attr:`StageSpec.module`, ``stages/<name>.py``),
+    imported by that name when it runs. The library knows a stage only by its
+    declaration: no module under ``pipeline/`` imports the ``stages`` package
+    (``tests/test_layers.py``)."""
+    import importlib
+
+    importlib.import_module(spec(stage).module).run(plan, item, progress=progress)
+
+
 def stages_of_side(side: Side) -> tuple[str, ...]:
     """The stages of one side, in declaration order: ``model`` (render_templates,
     symmetries, model_features), ``scene`` (segment_prior, scene_features, register,

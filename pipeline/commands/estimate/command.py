@@ -8,9 +8,9 @@ built it, and the scene side (``segment_prior``, ``scene_features``, ``register`
 ``refine``) runs on the frame. ``freeze estimate`` therefore gives what ``snakemake
 bop_all`` gives on the wrapped frame (``tests/test_estimate.py`` checks it to 1e-6).
 
-Running stages makes this a command-layer module, like :mod:`pipeline.commands.cli`: the
-library under ``pipeline/`` never imports ``stages``. Wired into the ``freeze`` app by
-``add_commands(app, show_app)``.
+It runs the stages as ``freeze stage`` does (:func:`pipeline.workflow.stage_graph.run_stage`,
+by their declarations: the library under ``pipeline/`` never imports ``stages``). Wired
+into the ``freeze`` app by ``add_commands(app, show_app)``.
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def _item(stage: str, scene: str) -> str:
 def run_stages(plan, stages_items: Sequence[tuple[str, str]], steps) -> dict[str, bool]:
     """Run each (stage, item) whose artifact is not in the cache yet; stage -> reused."""
     from pipeline.common import store
-    from stages import run_stage
+    from pipeline.workflow.stage_graph import run_stage
 
     reused = {}
     for stage, item in stages_items:
