@@ -829,14 +829,14 @@ class _RefineWork:
         """One hypothesis after ICP (``pose``, from :meth:`icp`) and verification, as a row
         of hypotheses.parquet; ident: its cand_id, scene_id, im_id, obj_id, hyp, parent,
         source, prior_score."""
-        (row,) = self.verified_many([ident], [pose], [n_inliers], [inlier_ratio], together=False)
+        (row,) = self.verified_many([ident], [pose], [n_inliers], [inlier_ratio])
         return row
 
     def verified_many(self, idents: Sequence[dict[str, Any]], poses: Sequence[tuple], n_inliers: Sequence[int],
-                      inlier_ratios: Sequence[float], together: bool = True) -> list[dict[str, Any]]:
+                      inlier_ratios: Sequence[float]) -> list[dict[str, Any]]:
         """:meth:`verified` of several hypotheses of one candidate (the same cand_id,
-        im_id and obj_id), in order; ``together``: their renders compared in one call of
-        :attr:`verify_many` where there is one (on the scene device)."""
+        im_id and obj_id), in order, their renders compared in one call of
+        :attr:`verify_many` where there is one (together on the scene device)."""
         from pipeline.method.refinement.selection import registration_evidence
 
         if not idents:
@@ -844,7 +844,7 @@ class _RefineWork:
         obj_id, im_id, cand_id = idents[0]["obj_id"], idents[0]["im_id"], idents[0]["cand_id"]
         evidence = [registration_evidence(r, pose[2]) for pose, r in zip(poses, inlier_ratios)]
         checks: list = [None] * len(idents)
-        if self.verify is not None and together and self.verify_many is not None:
+        if self.verify is not None and self.verify_many is not None:
             checks = self.verify_many(im_id, cand_id, obj_id, [pose[:2] for pose in poses], self.diameters[obj_id],
                                       evidence)
         elif self.verify is not None:

@@ -111,6 +111,16 @@ class Registration:
     n_correspondences: int
 
 
+def checked_features(query: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """query (Q, D) and reference (R, D) as float32 arrays, checked for matching feature
+    dimensions (both paths of :func:`feature_neighbours`)."""
+    q = np.asarray(query, dtype=np.float32)
+    r = np.asarray(reference, dtype=np.float32)
+    if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
+        raise ValueError(f"feature_neighbours: feature dims differ: {q.shape} vs {r.shape}")
+    return q, r
+
+
 def feature_neighbours(query: np.ndarray, reference: np.ndarray, k: int = 1, device: str | None = None) -> np.ndarray:
     """Indices (Q, k) int64 of the k nearest rows of ``reference`` (R, D) for each row of
     ``query`` (Q, D), Euclidean distance, nearest first. Exact (brute force in blocks).
@@ -119,10 +129,7 @@ def feature_neighbours(query: np.ndarray, reference: np.ndarray, k: int = 1, dev
         from pipeline.method.registration.ransac_torch import feature_neighbours_torch
 
         return feature_neighbours_torch(query, reference, k, device)
-    q = np.asarray(query, dtype=np.float32)
-    r = np.asarray(reference, dtype=np.float32)
-    if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
-        raise ValueError(f"feature_neighbours: feature dims differ: {q.shape} vs {r.shape}")
+    q, r = checked_features(query, reference)
     k = min(k, len(r))
     r_sq = np.sum(r * r, axis=1)
     rt = np.ascontiguousarray(r.T)
@@ -379,7 +386,14 @@ def _ransac_numpy(
         keep = np.lexsort((p_order, -p_count))[:pool]
         p_count, p_order, p_R, p_t = p_count[keep], p_order[keep], p_R[keep], p_t[keep]
         needed = _needed_iterations(max(int(p_count[0]), 0) / C, params.confidence)
-    # The placeholder (count -1: identity, centroids aligned) only when nothing was fitted.
+    return pool_poses(p_count, p_R, p_t, ms, md)
+
+
+def pool_poses(p_count: np.ndarray, p_R: np.ndarray, p_t: np.ndarray, ms: np.ndarray,
+               md: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """A RANSAC loop's pool as (count, R (3, 3), t (3,) mm), the poses mapped back from
+    the centred frames (source centroid ``ms``, target ``md``): t = md - R ms + t_c. The
+    placeholder (count -1: identity, centroids aligned) only when nothing was fitted."""
     real = p_count >= 0
     sel = real if real.any() else np.arange(len(p_count)) == 0
     return [(int(c), R, md - R @ ms + t) for c, R, t in zip(p_count[sel], p_R[sel], p_t[sel])]

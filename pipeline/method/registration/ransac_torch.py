@@ -29,8 +29,10 @@ import numpy as np
 from pipeline.method.registration.ransac import (
     RansacParams,
     _needed_iterations,
+    checked_features,
     edge_lengths,
     fit_triangles,
+    pool_poses,
     score_terms,
     squared_residuals,
 )
@@ -57,10 +59,7 @@ def feature_neighbours_torch(query: np.ndarray, reference: np.ndarray, k: int = 
     (the same expansion |r|^2 - 2 q.r; only the order of the sums differs, so only
     near-exact ties can resolve otherwise)."""
     torch = _torch()
-    q = np.asarray(query, dtype=np.float32)
-    r = np.asarray(reference, dtype=np.float32)
-    if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
-        raise ValueError(f"feature_neighbours: feature dims differ: {q.shape} vs {r.shape}")
+    q, r = checked_features(query, reference)
     k = min(k, len(r))
     # TF32 would round the products to 10 bits of mantissa; torch leaves it off for
     # matrix products unless a process turns it on (and the project never does): then
@@ -153,7 +152,4 @@ def ransac_pool_torch(src: np.ndarray, dst: np.ndarray, thr: float, params: Rans
         p_R, p_t = torch.cat([p_R, R[keep]]), torch.cat([p_t, t[keep]])
         top = torch.sort(-p_count, stable=True).indices[:pool]
         p_count, p_order, p_R, p_t = p_count[top], p_order[top], p_R[top], p_t[top]
-    counts_np, R_np, t_np = p_count.cpu().numpy(), p_R.cpu().numpy(), p_t.cpu().numpy()
-    real = counts_np >= 0
-    sel = real if real.any() else np.arange(len(counts_np)) == 0
-    return [(int(c), R, md - R @ ms + t) for c, R, t in zip(counts_np[sel], R_np[sel], t_np[sel])]
+    return pool_poses(p_count.cpu().numpy(), p_R.cpu().numpy(), p_t.cpu().numpy(), ms, md)
