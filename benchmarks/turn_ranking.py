@@ -8,7 +8,7 @@ refine aligns every turn of a candidate's best hypothesis
 half and third turns, about 26 a candidate on semi-real LM-O) by a quick ICP (10
 iterations at the coarsest correspondence distance), and keeps the ``refine.turns`` best
 by that ICP's fitness, distinct from each other and from the parent
-(:meth:`pipeline.method.scene_side._RefineWork.turned_rows`). Those quick ICPs are about
+(:func:`pipeline.method.scene_side.kept_turns`). Those quick ICPs are about
 a fifth of the scene side's time on semi-real LM-O
 (``benchmarks/results/scene_side_profile_semilmo.md``).
 
@@ -48,8 +48,7 @@ def replay(name: str, prior: str | None) -> list[dict]:
     from pipeline.method.geometry.transforms import invert
     from pipeline.method.refinement.icp import IcpModel, refine_icp
     from pipeline.method.refinement.turns import model_turns, turned
-    from pipeline.method.registration.ransac import distinct_poses
-    from pipeline.method.scene_side import QUICK_ICP_ITERATIONS, packed_points
+    from pipeline.method.scene_side import icp_options, kept_turns, packed_points
     from pipeline.workflow.plan import RunPlan
     from pipeline.workflow.prepared import prepared_objects
 
@@ -79,26 +78,20 @@ def replay(name: str, prior: str | None) -> list[dict]:
             model, diameter, T = prepared[obj_id]
             points = np.asarray(scene(int(cand_id)), dtype=np.float64)
             R0, t0 = np.reshape(parent.R, (3, 3)), np.asarray(parent.t, dtype=np.float64)
-            threshold = p.max_corr_frac * diameter
+            quick_options = icp_options(p, quick=True)
 
             def fitness_after(R, t, iterations: int) -> float:
                 if iterations == 0:
                     Rc, tc = invert(R, t)
-                    dist, _ = model.tree.query(points @ Rc.T + tc, distance_upper_bound=threshold)
+                    dist, _ = model.tree.query(points @ Rc.T + tc, distance_upper_bound=p.max_corr_frac * diameter)
                     return float((dist < np.inf).mean())
-                return float(refine_icp(model, None, points, R, t, diameter, max_corr_dist_frac=p.max_corr_frac,
-                                        point_to_plane=p.point_to_plane, schedule=(1.0,),
-                                        iterations=iterations).fitness)
+                return float(refine_icp(model, None, points, R, t, diameter,
+                                        **(quick_options | {"iterations": iterations})).fitness)
 
             starts = [turned(R0, t0, Ti) for Ti in T]
-            quick = [refine_icp(model, None, points, R, t, diameter, max_corr_dist_frac=p.max_corr_frac,
-                                point_to_plane=p.point_to_plane, schedule=(1.0,), iterations=QUICK_ICP_ITERATIONS)
-                     for R, t in starts]
-            # refine's own choice (turned_rows): the best by the quick ICP's fitness, distinct.
-            order = np.argsort(-np.nan_to_num([q.fitness for q in quick], nan=-1.0), kind="stable")
-            keep = distinct_poses([(R0, t0)] + [(quick[j].R, quick[j].t) for j in order], p.turns + 1, 5.0,
-                                  0.05 * diameter)
-            kept = [int(order[i - 1]) for i in keep if i > 0]
+            quick = [(res.R, res.t, res.fitness) for res in
+                     (refine_icp(model, None, points, R, t, diameter, **quick_options) for R, t in starts)]
+            kept = kept_turns(quick, R0, t0, p.turns, diameter)  # refine's own choice
             if len(kept) != len(turns_rows):  # the replay must be refine's own
                 raise SystemExit(f"turn_ranking: {name} candidate {cand_id}: the replay keeps {len(kept)} turns, "
                                  f"refine kept {len(turns_rows)}")

@@ -771,6 +771,29 @@ def hypothesis_rank(value: float, evidence: float, hyp: int) -> tuple:
     return (math.isnan(v), 0.0 if math.isnan(v) else -v, math.isnan(e), 0.0 if math.isnan(e) else -e, int(hyp))
 
 
+def icp_options(params: RefineParams, quick: bool) -> dict[str, Any]:
+    """refine's ICP keyword arguments (:func:`pipeline.method.refinement.icp.refine_icp`)
+    from its parameters; ``quick``: only the coarsest correspondence distance,
+    :data:`QUICK_ICP_ITERATIONS` iterations (the ICP that ranks the turns)."""
+    schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
+        {"iterations": params.iterations}
+    return {"max_corr_dist_frac": params.max_corr_frac, "point_to_plane": params.point_to_plane, **schedule}
+
+
+def kept_turns(quick: Sequence[tuple], R0: np.ndarray, t0: np.ndarray, n_turns: int, diameter: float) -> list[int]:
+    """Which turns of the hypothesis ``(R0 (3, 3), t0 (3,) mm)`` refine refines and
+    verifies, from their quick ICPs ``quick`` ((R, t, fitness, ...) each, in the order of
+    the object's turns): the indices of up to ``n_turns`` of them, the best fitness first
+    (NaN last, ties in order), each distinct from the parent and from the earlier kept
+    ones by 5 degrees or 0.05 ``diameter`` (turns that slid to one pose are one
+    hypothesis, as register keeps its hypotheses distinct)."""
+    from pipeline.method.registration.ransac import distinct_poses
+
+    order = np.argsort(-np.nan_to_num([q[2] for q in quick], nan=-1.0), kind="stable")
+    keep = distinct_poses([(R0, t0)] + [quick[j][:2] for j in order], n_turns + 1, 5.0, 0.05 * diameter)
+    return [int(order[i - 1]) for i in keep if i > 0]
+
+
 @dataclass(frozen=True)
 class _RefineWork:
     """What every candidate of a scene's refinement shares, and the work on one
@@ -802,16 +825,8 @@ class _RefineWork:
         done = refine_icp_batch(self.models[ident["obj_id"]], self.points[ident["cand_id"]],
                                 np.stack([np.reshape(R, (3, 3)) for R, _, _ in starts]),
                                 np.stack([np.reshape(t, 3) for _, t, _ in starts]), self.diameters[ident["obj_id"]],
-                                device=self.scene_device, **self.icp_options(quick))
+                                device=self.scene_device, **icp_options(self.params, quick))
         return [(res.R, res.t, float(res.fitness), float(res.inlier_rmse)) for res in done]
-
-    def icp_options(self, quick: bool) -> dict[str, Any]:
-        """The ICP's keyword arguments from refine's parameters; ``quick``: only the
-        coarsest correspondence distance, :data:`QUICK_ICP_ITERATIONS` iterations."""
-        params = self.params
-        schedule = {"schedule": (1.0,), "iterations": QUICK_ICP_ITERATIONS} if quick else \
-            {"iterations": params.iterations}
-        return {"max_corr_dist_frac": params.max_corr_frac, "point_to_plane": params.point_to_plane, **schedule}
 
     def icp(self, ident: dict[str, Any], R: np.ndarray, t: np.ndarray, fitness: float, quick: bool = False) -> tuple:
         """The hypothesis' pose and fit after ICP: (R, t, fitness, inlier_rmse mm);
@@ -822,7 +837,7 @@ class _RefineWork:
         if not self.params.icp:
             return R, t, fitness, float("nan")
         res = refine_icp(self.models[ident["obj_id"]], None, self.points[ident["cand_id"]], R, t,
-                         self.diameters[ident["obj_id"]], **self.icp_options(quick))
+                         self.diameters[ident["obj_id"]], **icp_options(self.params, quick))
         return res.R, res.t, float(res.fitness), float(res.inlier_rmse)
 
     def verified(self, ident: dict[str, Any], pose: tuple, n_inliers: int, inlier_ratio: float) -> dict[str, Any]:
@@ -870,7 +885,6 @@ class _RefineWork:
         ``first_hyp``; and the time they took (s). (The full ICP from a turned start runs
         its whole schedule, about 7x the quick one, and a verification's render costs
         more than either: both are kept for the few turns that fit.)"""
-        from pipeline.method.registration.ransac import distinct_poses
         from pipeline.method.refinement.turns import turned
 
         params = self.params
@@ -882,12 +896,7 @@ class _RefineWork:
         ident |= {"parent": parent["hyp"], "source": "turn"}
         R0, t0_ = np.reshape(parent["R"], (3, 3)), np.asarray(parent["t"], float)
         quick = self.icp_many(ident, [(*turned(R0, t0_, Ti), float("nan")) for Ti in T], quick=True)
-        order = np.argsort(-np.nan_to_num([q[2] for q in quick], nan=-1.0), kind="stable")
-        # Distinct from the parent and from each other (turns that slid to one pose are
-        # one hypothesis), as register keeps its hypotheses distinct.
-        keep = distinct_poses([(R0, t0_)] + [quick[j][:2] for j in order], params.turns + 1, 5.0,
-                              0.05 * self.diameters[parent["obj_id"]])
-        best = [order[i - 1] for i in keep if i > 0]
+        best = kept_turns(quick, R0, t0_, params.turns, self.diameters[parent["obj_id"]])
         poses = self.icp_many(ident, [(*quick[j][:2], quick[j][2]) for j in best])
         rows = self.verified_many([ident | {"hyp": first_hyp + k} for k in range(len(poses))], poses,
                                   [0] * len(poses), [0.0] * len(poses))

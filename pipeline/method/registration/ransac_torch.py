@@ -105,10 +105,10 @@ def ransac_pool_torch(src: np.ndarray, dst: np.ndarray, thr: float, params: Rans
     D = torch.as_tensor(dst - md, **kw)
     terms = score_terms(S, D)
     S_t, D_t = S.T.contiguous(), D.T.contiguous()
-    # The pool, as in the numpy loop: the best so far with their sample's index; the
-    # placeholder (count -1, identity) stands until something is fitted.
+    # The pool, as in the numpy loop: the best so far, in the order of their samples
+    # among equal counts (so no sample index is kept, as the numpy loop's lexsort needs);
+    # the placeholder (count -1, identity) stands until something is fitted.
     p_count = torch.full((1,), -1, dtype=torch.int64, device=device)
-    p_order = torch.zeros(1, dtype=torch.int64, device=device)
     p_R, p_t = torch.eye(3, **kw)[None], torch.zeros((1, 3), **kw)
     done, needed, best = 0, math.inf, -1
     ratio, thr2 = params.edge_length_ratio, thr * thr
@@ -136,7 +136,7 @@ def ransac_pool_torch(src: np.ndarray, dst: np.ndarray, thr: float, params: Rans
         batch = torch.bucketize(sample, starts, right=True) - 1
         batch_best = torch.full((len(sizes),), -1, dtype=torch.int64, device=device)
         batch_best = batch_best.scatter_reduce(0, batch, counts, reduce="amax").cpu().numpy()
-        first, used = done, len(sizes)
+        used = len(sizes)
         for j, B in enumerate(sizes):  # the numpy loop's stopping rule, batch by batch
             done += B
             best = max(best, int(batch_best[j]))
@@ -148,8 +148,7 @@ def ransac_pool_torch(src: np.ndarray, dst: np.ndarray, thr: float, params: Rans
         # The pool and the new hypotheses, whose samples all come later: a stable sort
         # by count keeps the numpy loop's tie-break (the earlier sample first).
         p_count = torch.cat([p_count, counts[keep]])
-        p_order = torch.cat([p_order, first + sample[keep]])
         p_R, p_t = torch.cat([p_R, R[keep]]), torch.cat([p_t, t[keep]])
         top = torch.sort(-p_count, stable=True).indices[:pool]
-        p_count, p_order, p_R, p_t = p_count[top], p_order[top], p_R[top], p_t[top]
+        p_count, p_R, p_t = p_count[top], p_R[top], p_t[top]
     return pool_poses(p_count.cpu().numpy(), p_R.cpu().numpy(), p_t.cpu().numpy(), ms, md)
